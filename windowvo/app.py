@@ -1,0 +1,161 @@
+"""Run a configured job end to end: load, process, write, evaluate, summarise.
+
+The command line (``run.py``) and the benchmark call :func:`run_and_report`; tests call
+:func:`run_job` to get the numbers without printing.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .config import Config, DatasetKind, RerunMode
+from .errors import WindowVOError
+from .io.sequence import Sequence, load_native
+from .io.trajectory import Trajectory
+from .pipeline import Pipeline, RunResult, write_outputs
+
+log = logging.getLogger("windowvo")
+
+
+@dataclass
+class JobReport:
+    result: RunResult
+    sequence: Sequence
+    accuracy: Optional[object] = None  # AccuracyReport
+    wheel_accuracy: Optional[object] = None
+
+
+def load_sequence(cfg: Config) -> Sequence:
+    if cfg.dataset is DatasetKind.NATIVE:
+        return load_native(cfg.sequence, fps=cfg.fps)
+    from .io import datasets
+
+    return datasets.load(cfg)
+
+
+def wheel_only_trajectory(seq: Sequence, timestamps: np.ndarray) -> Optional[Trajectory]:
+    """Wheel odometry alone at the given times, anchored at the first one (world = first base)."""
+    odo = seq.odometry
+    if odo is None or len(timestamps) == 0:
+        return None
+    T0 = odo.pose_at(float(timestamps[0]))
+    poses = np.stack([odo.delta(float(timestamps[0]), float(t)) for t in timestamps])
+    del T0
+    return Trajectory(np.asarray(timestamps, float), poses)
+
+
+def make_viewer(cfg: Config, seq: Sequence):
+    if cfg.viz.rerun is RerunMode.OFF:
+        return None
+    from .viz.rerun_logger import RerunLogger
+
+    return RerunLogger(cfg, seq)
+
+
+def run_job(cfg: Config, progress=None) -> JobReport:
+    seq = load_sequence(cfg)
+    for w in seq.warnings:
+        log.warning("%s", w)
+    viewer = make_viewer(cfg, seq)
+    pipe = Pipeline(cfg, seq, viewer=viewer, progress=progress)
+    if pipe.use_odometry:
+        label = " (synthetic wheel odometry)" if seq.odometry is not None and seq.odometry.synthetic else ""
+        log.info("metric run: wheel odometry fixes the scale%s", label)
+    else:
+        log.warning("no wheel odometry: monocular run, the trajectory is up to scale")
+    result = None
+    try:
+        result = pipe.run()
+    finally:
+        if result is None:  # an unexpected error: still write what we have
+            try:
+                partial = RunResult(len(pipe.frames), len(pipe.kf_frames), 0, 0.0, pipe.assemble_trajectory(),
+                                    pipe.records, not pipe.use_odometry, interrupted=True)
+                write_outputs(cfg, partial, cfg.output)
+                log.error("run failed after frame %d; partial results written to %s",
+                          pipe.frames[-1][0] if pipe.frames else -1, cfg.output)
+            except Exception:  # pragma: no cover - best effort only
+                pass
+    write_outputs(cfg, result, cfg.output)
+    report = JobReport(result, seq)
+    if seq.groundtruth is not None and len(result.trajectory) >= 3:
+        from .eval.metrics import evaluate
+
+        try:
+            report.accuracy = evaluate(seq.groundtruth, result.trajectory)
+            wheel = wheel_only_trajectory(seq, result.trajectory.timestamps)
+            if wheel is not None:
+                report.wheel_accuracy = evaluate(seq.groundtruth, wheel)
+        except WindowVOError as err:
+            log.warning("evaluation skipped: %s", err)
+    if viewer is not None:
+        viewer.finish(pipe, result, report)
+    return report
+
+
+def _progress_bar(cfg: Config, total: int):
+    if not cfg.progress or not sys.stderr.isatty():
+        return None, None
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, unit="frame", dynamic_ncols=True, file=sys.stderr)
+
+    def update(n_frames: int, n_kf: int) -> None:
+        bar.n = n_frames
+        bar.set_postfix(keyframes=n_kf, refresh=False)
+        bar.refresh() if n_frames % 10 == 0 else None
+
+    return bar, update
+
+
+def run_and_report(cfg: Config) -> RunResult:
+    seq_len_hint = None
+    try:
+        seq_len_hint = len(list((cfg.sequence / "images").iterdir())) if (cfg.sequence / "images").is_dir() else None
+    except OSError:
+        pass
+    total = min(seq_len_hint or 0, cfg.max_frames or 10**9) or None
+    bar, update = _progress_bar(cfg, total or 0)
+    try:
+        report = run_job(cfg, progress=update)
+    finally:
+        if bar is not None:
+            bar.close()
+    r = report.result
+    summary = {
+        "frames": r.n_frames,
+        "keyframes": r.n_keyframes,
+        "skipped_frames": r.n_skipped,
+        "wall_s": round(r.wall_s, 3),
+        "fps": round(r.fps, 2),
+        "frontend_ms_mean": round(float(np.mean(r.frontend_ms)), 3) if r.frontend_ms else None,
+        "backend_ms_median": round(float(np.median(r.backend_ms)), 3) if r.backend_ms else None,
+        "backend_resets": r.n_resets,
+        "monocular": r.monocular,
+        "odometry_synthetic": bool(report.sequence.odometry is not None and report.sequence.odometry.synthetic),
+        "interrupted": r.interrupted,
+        "accuracy": report.accuracy.as_dict() if report.accuracy is not None else None,
+        "wheel_only_accuracy": report.wheel_accuracy.as_dict() if report.wheel_accuracy is not None else None,
+    }
+    (cfg.output / "summary.json").write_text(json.dumps(summary, indent=2))
+    lines = [
+        f"windowvo: {r.n_frames} frames ({r.n_skipped} skipped), {r.n_keyframes} keyframes, "
+        f"{r.wall_s:.1f} s, {r.fps:.1f} fps" + (" [interrupted]" if r.interrupted else ""),
+    ]
+    if r.monocular:
+        lines.append("monocular run (no wheel odometry): the trajectory is up to scale")
+    elif summary["odometry_synthetic"]:
+        lines.append("scale from wheel odometry (synthetic, see odometry.csv header)")
+    if report.accuracy is not None:
+        lines.append("accuracy: " + report.accuracy.summary(metric=not r.monocular))
+    if report.wheel_accuracy is not None:
+        lines.append(f"wheel odometry alone: ATE SE(3) {report.wheel_accuracy.ate_se3_rmse_m:.3f} m")
+    lines.append(f"outputs: {cfg.output}")
+    print("\n".join(lines))
+    return r

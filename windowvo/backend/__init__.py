@@ -1,0 +1,1 @@
+"""Back end: GTSAM fixed-lag smoother over keyframe poses and landmarks."""

@@ -1,0 +1,160 @@
+"""Calibrated camera model: pinhole with optional radial-tangential or equidistant distortion.
+
+All functions are vectorised over N points given as ``(N, 2)`` pixels or ``(N, 3)`` points.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .errors import CalibrationError
+
+
+class DistortionModel(str, enum.Enum):
+    NONE = "none"
+    RADTAN = "radtan"  # k1, k2, p1, p2[, k3]
+    EQUIDISTANT = "equidistant"  # k1, k2, k3, k4 (OpenCV fisheye)
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion_model: DistortionModel = DistortionModel.NONE
+    distortion: tuple[float, ...] = ()
+    T_base_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    def __post_init__(self) -> None:
+        if self.width <= 0 or self.height <= 0:
+            raise CalibrationError(f"camera: width and height must be positive, got {self.width}x{self.height}")
+        if not (self.fx > 0 and self.fy > 0):
+            raise CalibrationError(f"camera: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if not (0 <= self.cx <= self.width and 0 <= self.cy <= self.height):
+            raise CalibrationError(
+                f"camera: principal point ({self.cx}, {self.cy}) lies outside the {self.width}x{self.height} image"
+            )
+        n = len(self.distortion)
+        model = DistortionModel(self.distortion_model)
+        object.__setattr__(self, "distortion_model", model)
+        if model is DistortionModel.NONE and any(abs(d) > 0 for d in self.distortion):
+            raise CalibrationError("camera: distortion coefficients given but distortion_model is 'none'")
+        if model is DistortionModel.RADTAN and n not in (4, 5):
+            raise CalibrationError(f"camera: radtan distortion needs 4 or 5 coefficients (k1 k2 p1 p2 [k3]), got {n}")
+        if model is DistortionModel.EQUIDISTANT and n != 4:
+            raise CalibrationError(f"camera: equidistant distortion needs 4 coefficients (k1 k2 k3 k4), got {n}")
+        T = np.asarray(self.T_base_cam, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise CalibrationError("camera: T_base_cam must be 16 finite numbers (a 4x4 matrix, row major)")
+        R = T[:3, :3]
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0.99 or not np.allclose(
+            T[3], [0, 0, 0, 1], atol=1e-9
+        ):
+            raise CalibrationError("camera: T_base_cam is not a rigid transform (rotation not orthonormal)")
+        object.__setattr__(self, "T_base_cam", T)
+
+    # ------------------------------------------------------------------ matrices
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist_coeffs(self) -> np.ndarray:
+        return np.asarray(self.distortion, dtype=float)
+
+    @property
+    def has_distortion(self) -> bool:
+        return self.distortion_model is not DistortionModel.NONE and any(abs(d) > 0 for d in self.distortion)
+
+    # ------------------------------------------------------------------ pixels <-> rays
+    def project(self, p_cam: np.ndarray) -> np.ndarray:
+        """Project camera-frame points (N,3) with Z > 0 to distorted pixels (N,2)."""
+        p = np.asarray(p_cam, dtype=float).reshape(-1, 3)
+        xn = p[:, :2] / p[:, 2:3]
+        return self.distort_normalized(xn)
+
+    def distort_normalized(self, xn: np.ndarray) -> np.ndarray:
+        """Normalised image coordinates (N,2) to distorted pixels (N,2)."""
+        xn = np.asarray(xn, dtype=float).reshape(-1, 2)
+        x, y = xn[:, 0], xn[:, 1]
+        d = self.distortion
+        if not self.has_distortion:
+            xd, yd = x, y
+        elif self.distortion_model is DistortionModel.RADTAN:
+            k1, k2, p1, p2 = d[:4]
+            k3 = d[4] if len(d) > 4 else 0.0
+            r2 = x * x + y * y
+            radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+            xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+            yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        else:  # equidistant
+            k1, k2, k3, k4 = d
+            r = np.sqrt(x * x + y * y)
+            theta = np.arctan(r)
+            t2 = theta * theta
+            theta_d = theta * (1 + k1 * t2 + k2 * t2 * t2 + k3 * t2**3 + k4 * t2**4)
+            scale = np.where(r > 1e-12, theta_d / np.maximum(r, 1e-12), 1.0)
+            xd, yd = x * scale, y * scale
+        return np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=1)
+
+    def undistort_normalized(self, uv: np.ndarray) -> np.ndarray:
+        """Distorted pixels (N,2) to normalised undistorted coordinates (N,2)."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+        if uv.shape[0] == 0:
+            return np.zeros((0, 2))
+        if not self.has_distortion:
+            out = (uv.reshape(-1, 2) - [self.cx, self.cy]) / [self.fx, self.fy]
+            return out
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
+        if self.distortion_model is DistortionModel.RADTAN:
+            out = cv2.undistortPoints(uv, self.K, self.dist_coeffs, criteria=crit)
+        else:
+            out = cv2.fisheye.undistortPoints(uv, self.K, self.dist_coeffs, criteria=crit)
+        return out.reshape(-1, 2)
+
+    def undistort_pixels(self, uv: np.ndarray) -> np.ndarray:
+        """Distorted pixels to the pixels an ideal pinhole camera with the same K would see."""
+        xn = self.undistort_normalized(uv)
+        return xn * [self.fx, self.fy] + [self.cx, self.cy]
+
+    def unproject(self, uv: np.ndarray) -> np.ndarray:
+        """Distorted pixels (N,2) to unit bearing vectors (N,3) in the camera frame."""
+        xn = self.undistort_normalized(uv)
+        rays = np.concatenate([xn, np.ones((xn.shape[0], 1))], axis=1)
+        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+    def pixel_rays(self) -> np.ndarray:
+        """Unnormalised rays (H*W, 3) with z=1 through every pixel centre, distortion included."""
+        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
+        uv = np.stack([u.ravel(), v.ravel()], axis=1)
+        xn = self.undistort_normalized(uv)
+        return np.concatenate([xn, np.ones((xn.shape[0], 1))], axis=1)
+
+    def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        uv = np.asarray(uv).reshape(-1, 2)
+        return (
+            (uv[:, 0] >= margin)
+            & (uv[:, 1] >= margin)
+            & (uv[:, 0] <= self.width - 1 - margin)
+            & (uv[:, 1] <= self.height - 1 - margin)
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "width": self.width,
+            "height": self.height,
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+            "distortion_model": self.distortion_model.value,
+            "distortion": [float(d) for d in self.distortion],
+            "T_base_cam": [float(x) for x in np.asarray(self.T_base_cam).ravel()],
+        }

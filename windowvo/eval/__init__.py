@@ -1,0 +1,1 @@
+"""Evaluation against ground truth (ATE, RPE, drift), built on evo."""

@@ -1,0 +1,108 @@
+"""Trajectory accuracy built on ``evo``: ATE (SE(3) and Sim(3) alignment), RPE per metre, end drift.
+
+Pure functions of two :class:`~windowvo.io.trajectory.Trajectory` objects; no files, no printing.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict, dataclass
+from typing import Optional
+
+import numpy as np
+from evo.core import metrics as evo_metrics
+from evo.core import sync as evo_sync
+from evo.core.trajectory import PoseTrajectory3D
+from evo.core.units import Unit
+
+from ..errors import WindowVOError
+from ..io.trajectory import Trajectory
+
+
+@dataclass
+class AccuracyReport:
+    n_poses: int
+    path_length_m: float
+    ate_se3_rmse_m: float
+    ate_sim3_rmse_m: float
+    sim3_scale: float
+    rpe_trans_per_m: float  # RMSE of the translation error over 1 m segments (m)
+    end_drift_pct: float  # end-point error after aligning the first pose, % of path length
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def summary(self, metric: bool = True) -> str:
+        head = f"ATE SE(3) {self.ate_se3_rmse_m:.3f} m" if metric else "ATE SE(3) n/a (monocular, up to scale)"
+        return (
+            f"{head} | ATE Sim(3) {self.ate_sim3_rmse_m:.3f} m (scale {self.sim3_scale:.3f}) | "
+            f"RPE {self.rpe_trans_per_m:.3f} m per m | end drift {self.end_drift_pct:.2f}% of "
+            f"{self.path_length_m:.1f} m"
+        )
+
+
+def _to_evo(traj: Trajectory) -> PoseTrajectory3D:
+    return PoseTrajectory3D(poses_se3=[T.copy() for T in traj.T_world_base], timestamps=traj.timestamps.copy())
+
+
+def evaluate(groundtruth: Trajectory, estimate: Trajectory, max_time_diff: float = 0.02) -> AccuracyReport:
+    """Accuracy of ``estimate`` against ``groundtruth`` (both ``T_world_base``)."""
+    ref = _to_evo(groundtruth)
+    est = _to_evo(estimate)
+    try:
+        ref, est = evo_sync.associate_trajectories(ref, est, max_diff=max_time_diff)
+    except Exception as err:  # evo raises its own SyncException
+        raise WindowVOError(f"cannot associate estimate with ground truth: {err}") from None
+    if ref.num_poses < 3:
+        raise WindowVOError("fewer than 3 poses in common between estimate and ground truth")
+    path_len = float(ref.path_length)
+
+    def ate(correct_scale: bool) -> tuple[float, float]:
+        e = copy.deepcopy(est)
+        _, _, s = e.align(ref, correct_scale=correct_scale)
+        m = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+        m.process_data((ref, e))
+        return float(m.get_statistic(evo_metrics.StatisticsType.rmse)), float(s)
+
+    ate_se3, _ = ate(False)
+    ate_sim3, scale = ate(True)
+    rpe = float("nan")
+    if path_len > 2.0:
+        try:
+            m = evo_metrics.RPE(evo_metrics.PoseRelation.translation_part, delta=1.0, delta_unit=Unit.meters,
+                                all_pairs=False)
+            m.process_data((ref, est))
+            rpe = float(m.get_statistic(evo_metrics.StatisticsType.rmse))
+        except Exception:
+            rpe = float("nan")
+    e0 = copy.deepcopy(est)
+    e0.align_origin(ref)
+    end_err = float(np.linalg.norm(e0.positions_xyz[-1] - ref.positions_xyz[-1]))
+    drift = 100.0 * end_err / path_len if path_len > 0 else float("nan")
+    return AccuracyReport(ref.num_poses, path_len, ate_se3, ate_sim3, scale, rpe, drift)
+
+
+def plot_trajectories(path, groundtruth: Optional[Trajectory], estimates: dict[str, Trajectory], title: str = "") -> None:
+    """Top-down (x-y) plot of trajectories, ground truth first, written as PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 5.6), dpi=110)
+    if groundtruth is not None:
+        g = groundtruth.anchored().positions
+        ax.plot(g[:, 0], g[:, 1], "k--", lw=1.5, label="ground truth")
+    for name, tr in estimates.items():
+        p = tr.anchored().positions
+        ax.plot(p[:, 0], p[:, 1], lw=1.3, label=name)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    if title:
+        ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -1,0 +1,191 @@
+"""Front end: tracks -> undistorted observations, RANSAC outlier rejection, keyframes, gates.
+
+Per frame: track features (persistent ids), undistort them, reject outliers with an
+essential-matrix RANSAC against the last keyframe (rejected tracks end), measure parallax,
+decide whether this frame is a keyframe, and run the quality gates on keyframe candidates.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from ..camera import CameraModel
+from ..config import FrontendConfig, GateConfig, KeyframeConfig, TrackerKind
+from ..types import Frame, FrontendOutput, GateOutcome, KeyframeReason
+from .tracker import KLTTracker, ORBTracker
+
+
+@dataclass
+class TwoViewResult:
+    inlier_mask: np.ndarray  # (N,) bool, over the common tracks
+    R_cur_kf: Optional[np.ndarray]  # rotation taking kf-camera vectors into the current camera
+    t_cur_kf: Optional[np.ndarray]  # unit translation direction (current camera frame)
+    cheirality_ratio: float
+    rot_comp_parallax_px: float
+
+
+def two_view_geometry(
+    xn_kf: np.ndarray, xn_cur: np.ndarray, focal: float, threshold_px: float, confidence: float
+) -> TwoViewResult:
+    """Essential matrix (USAC/RANSAC) between normalised points, then pose with cheirality."""
+    n = len(xn_kf)
+    if n < 8:
+        return TwoViewResult(np.ones(n, bool), None, None, 1.0, 0.0)
+    thr = threshold_px / focal
+    E, mask = cv2.findEssentialMat(xn_kf, xn_cur, np.eye(3), method=cv2.USAC_DEFAULT if hasattr(cv2, "USAC_DEFAULT") else cv2.RANSAC, prob=confidence, threshold=thr)
+    if E is None or mask is None or E.shape != (3, 3):
+        return TwoViewResult(np.ones(n, bool), None, None, 1.0, 0.0)
+    inl = mask.ravel().astype(bool)
+    n_good, R, t, mask_pose = cv2.recoverPose(E, xn_kf[inl], xn_cur[inl], np.eye(3))
+    cheir = float(n_good) / max(int(inl.sum()), 1)
+    # Parallax after removing the rotation: how far points moved because of translation.
+    rays = np.concatenate([xn_kf[inl], np.ones((int(inl.sum()), 1))], axis=1) @ R.T
+    rotated = rays[:, :2] / np.maximum(rays[:, 2:3], 1e-9)
+    rcp = float(np.median(np.linalg.norm(rotated - xn_cur[inl], axis=1)) * focal) if inl.any() else 0.0
+    return TwoViewResult(inl, R, t.ravel(), cheir, rcp)
+
+
+class Frontend:
+    """Stateful front end; one call to :meth:`process` per frame."""
+
+    def __init__(
+        self,
+        camera: CameraModel,
+        cfg: FrontendConfig,
+        kf_cfg: KeyframeConfig,
+        gate_cfg: GateConfig,
+        static_mask: Optional[np.ndarray] = None,
+    ):
+        self.camera = camera
+        self.cfg = cfg
+        self.kf_cfg = kf_cfg
+        self.gate_cfg = gate_cfg
+        self.tracker = ORBTracker(cfg) if cfg.tracker is TrackerKind.ORB else KLTTracker(cfg)
+        self.static_mask = static_mask
+        self.clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if cfg.clahe else None
+        self.kf_ids: Optional[np.ndarray] = None
+        self.kf_xn: Optional[np.ndarray] = None
+        self.kf_time = 0.0
+        self.kf_count = 0
+        self.focal = 0.5 * (camera.fx + camera.fy)
+
+    def _mask(self, frame: Frame) -> Optional[np.ndarray]:
+        m = self.static_mask
+        if frame.mask is not None:
+            m = frame.mask if m is None else np.minimum(m, frame.mask)
+        return m
+
+    def spread(self, pixels: np.ndarray) -> float:
+        """Share of grid cells that hold at least one feature."""
+        if len(pixels) == 0:
+            return 0.0
+        cols, rows = self.cfg.grid_cols, self.cfg.grid_rows
+        cx = np.clip((pixels[:, 0] * cols / self.camera.width).astype(int), 0, cols - 1)
+        cy = np.clip((pixels[:, 1] * rows / self.camera.height).astype(int), 0, rows - 1)
+        return float(len(set(zip(cx.tolist(), cy.tolist())))) / (cols * rows)
+
+    def process(self, frame: Frame, odom_motion: Optional[tuple[float, float]] = None, force_keyframe: bool = False) -> FrontendOutput:
+        """Track one frame. ``odom_motion`` is (distance m, |yaw| rad) since the last keyframe."""
+        t0 = time.perf_counter()
+        image = frame.image if self.clahe is None else self.clahe.apply(frame.image)
+        tracks = self.tracker.track(image, self._mask(frame))
+        xn = self.camera.undistort_normalized(tracks.pixels)
+        out_pixels = np.zeros((0, 2))
+        parallax = 0.0
+        two_view = None
+        n_common = 0
+        if self.kf_ids is not None and len(tracks.ids):
+            common, i_cur, i_kf = np.intersect1d(tracks.ids, self.kf_ids, return_indices=True)
+            n_common = len(common)
+            if n_common:
+                d = (xn[i_cur] - self.kf_xn[i_kf]) * self.focal
+                parallax = float(np.median(np.linalg.norm(d, axis=1)))
+            if n_common >= 8 and parallax > 0.5:
+                two_view = two_view_geometry(
+                    self.kf_xn[i_kf], xn[i_cur], self.focal, self.cfg.ransac_threshold_px, self.cfg.ransac_confidence
+                )
+                bad_ids = common[~two_view.inlier_mask]
+                if len(bad_ids):
+                    bad = np.isin(tracks.ids, bad_ids)
+                    out_pixels = tracks.pixels[bad]
+                    self.tracker.drop(bad_ids)
+                    keep = ~bad
+                    tracks.ids, tracks.pixels, tracks.ages = tracks.ids[keep], tracks.pixels[keep], tracks.ages[keep]
+                    xn = xn[keep]
+        out = FrontendOutput(
+            frame_index=frame.index,
+            timestamp=frame.timestamp,
+            track_ids=tracks.ids,
+            pixels=tracks.pixels.astype(np.float64),
+            pixels_undistorted=xn * [self.camera.fx, self.camera.fy] + [self.camera.cx, self.camera.cy],
+            track_ages=tracks.ages,
+            outlier_pixels=out_pixels,
+            parallax_px=parallax,
+            n_detected=tracks.n_detected,
+            spread=self.spread(tracks.pixels),
+        )
+        if two_view is not None:
+            out.inlier_ratio = float(two_view.inlier_mask.mean())
+            out.cheirality_ratio = two_view.cheirality_ratio
+            out.rot_comp_parallax_px = two_view.rot_comp_parallax_px
+            out.R_cam_kf_cam = two_view.R_cur_kf
+            out.t_dir_kf = two_view.t_cur_kf
+        self._decide_keyframe(out, n_common, odom_motion, force_keyframe)
+        if out.is_keyframe:
+            self.kf_ids = out.track_ids.copy()
+            self.kf_xn = xn.copy()
+            self.kf_time = frame.timestamp
+            self.kf_count += 1
+        out.frontend_ms = (time.perf_counter() - t0) * 1000.0
+        return out
+
+    def _decide_keyframe(
+        self, out: FrontendOutput, n_common: int, odom_motion: Optional[tuple[float, float]], force: bool
+    ) -> None:
+        kc, gc = self.kf_cfg, self.gate_cfg
+        if self.kf_ids is None:
+            if len(out.track_ids) >= gc.min_features:
+                out.is_keyframe, out.keyframe_reason = True, KeyframeReason.FIRST
+                out.gate = GateOutcome.PASS
+            else:
+                out.gate = GateOutcome.FEW_FEATURES
+            return
+        tracked_ratio = n_common / max(len(self.kf_ids), 1)
+        wheels_still = odom_motion is None or (
+            odom_motion[0] < kc.standstill_distance_m and odom_motion[1] < kc.standstill_rotation_rad
+        )
+        out.standstill = out.parallax_px < kc.standstill_parallax_px and wheels_still
+        reason = KeyframeReason.NONE
+        if force:
+            reason = KeyframeReason.LAST
+        elif out.standstill:
+            reason = KeyframeReason.NONE
+        elif out.parallax_px >= kc.min_parallax_px:
+            reason = KeyframeReason.PARALLAX
+        elif tracked_ratio < kc.min_tracked_ratio:
+            reason = KeyframeReason.TRACK_LOSS
+        elif out.timestamp - self.kf_time >= kc.max_interval_s:
+            reason = KeyframeReason.INTERVAL
+        if reason is KeyframeReason.NONE:
+            return
+        out.is_keyframe, out.keyframe_reason = True, reason
+        # Quality gates on the candidate.
+        if len(out.track_ids) < gc.min_features:
+            out.gate, out.vision_ok = GateOutcome.FEW_FEATURES, False
+        elif out.spread < gc.min_spread:
+            out.gate, out.vision_ok = GateOutcome.POOR_SPREAD, False
+        elif out.inlier_ratio < gc.min_inlier_ratio:
+            out.gate, out.vision_ok = GateOutcome.LOW_INLIERS, False
+        elif out.rot_comp_parallax_px < gc.min_parallax_px:
+            # Rotation-only or tiny motion: existing landmarks still constrain the pose,
+            # but nothing new can be triangulated.
+            out.gate, out.vision_ok = GateOutcome.LOW_PARALLAX, True
+        elif out.cheirality_ratio < gc.min_cheirality_ratio:
+            out.gate, out.vision_ok = GateOutcome.CHEIRALITY, False
+        else:
+            out.gate = GateOutcome.PASS

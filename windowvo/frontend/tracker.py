@@ -1,0 +1,233 @@
+"""Feature trackers with persistent track ids: pyramidal KLT (default) and ORB matching.
+
+Both keep about ``max_features`` live tracks spread over a grid, give every track a
+persistent id, and keep each live track's full pixel history.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional, Protocol
+
+import cv2
+import numpy as np
+
+from ..config import FrontendConfig
+
+
+@dataclass
+class TrackSet:
+    """Live tracks after a frame: ids, distorted pixel positions, and ages in frames."""
+
+    ids: np.ndarray  # (N,) int64
+    pixels: np.ndarray  # (N, 2) float32
+    ages: np.ndarray  # (N,) int32
+    n_detected: int = 0
+
+
+class Tracker(Protocol):
+    def track(self, image: np.ndarray, mask: Optional[np.ndarray]) -> TrackSet: ...
+
+    def drop(self, ids: np.ndarray) -> None: ...
+
+    def history(self, track_id: int) -> list[tuple[int, float, float]]: ...
+
+
+@dataclass
+class _History:
+    max_len: int = 10_000
+    data: dict[int, list[tuple[int, float, float]]] = field(default_factory=dict)
+
+    def add(self, frame: int, ids: np.ndarray, pts: np.ndarray) -> None:
+        for i, p in zip(ids.tolist(), pts.tolist()):
+            h = self.data.setdefault(i, [])
+            h.append((frame, p[0], p[1]))
+            if len(h) > self.max_len:
+                del h[0]
+
+    def keep_only(self, ids: np.ndarray) -> None:
+        live = set(ids.tolist())
+        for k in [k for k in self.data if k not in live]:
+            del self.data[k]
+
+
+def grid_select(
+    candidates: np.ndarray,
+    existing: np.ndarray,
+    shape: tuple[int, int],
+    cols: int,
+    rows: int,
+    budget: int,
+    per_cell: int,
+) -> np.ndarray:
+    """Pick candidates (sorted best first) into under-filled grid cells; returns their indices."""
+    h, w = shape
+    counts = np.zeros((rows, cols), np.int32)
+    if len(existing):
+        cx = np.clip((existing[:, 0] * cols / w).astype(int), 0, cols - 1)
+        cy = np.clip((existing[:, 1] * rows / h).astype(int), 0, rows - 1)
+        np.add.at(counts, (cy, cx), 1)
+    chosen = []
+    if len(candidates) == 0 or budget <= 0:
+        return np.zeros(0, np.int64)
+    ccx = np.clip((candidates[:, 0] * cols / w).astype(int), 0, cols - 1)
+    ccy = np.clip((candidates[:, 1] * rows / h).astype(int), 0, rows - 1)
+    for k in range(len(candidates)):
+        if counts[ccy[k], ccx[k]] < per_cell:
+            counts[ccy[k], ccx[k]] += 1
+            chosen.append(k)
+            if len(chosen) >= budget:
+                break
+    return np.asarray(chosen, np.int64)
+
+
+class KLTTracker:
+    """Shi-Tomasi corners on a grid, tracked with pyramidal Lucas-Kanade and a forward-backward check."""
+
+    def __init__(self, cfg: FrontendConfig):
+        self.cfg = cfg
+        self.ids = np.zeros(0, np.int64)
+        self.pts = np.zeros((0, 2), np.float32)
+        self.ages = np.zeros(0, np.int32)
+        self.next_id = 0
+        self.prev_pyr = None
+        self.frame = -1
+        self._hist = _History()
+        win = (cfg.klt_window_px, cfg.klt_window_px)
+        self.lk = dict(winSize=win, maxLevel=cfg.klt_levels,
+                       criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+
+    def history(self, track_id: int) -> list[tuple[int, float, float]]:
+        return self._hist.data.get(int(track_id), [])
+
+    def drop(self, ids: np.ndarray) -> None:
+        if len(ids) == 0:
+            return
+        keep = ~np.isin(self.ids, ids)
+        self.ids, self.pts, self.ages = self.ids[keep], self.pts[keep], self.ages[keep]
+        self._hist.keep_only(self.ids)
+
+    def track(self, image: np.ndarray, mask: Optional[np.ndarray] = None) -> TrackSet:
+        self.frame += 1
+        h, w = image.shape[:2]
+        pyr = image  # the Python binding takes images, not prebuilt pyramids
+        b = self.cfg.border_px
+        if self.prev_pyr is not None and len(self.pts):
+            p0 = self.pts.reshape(-1, 1, 2)
+            p1, st, _ = cv2.calcOpticalFlowPyrLK(self.prev_pyr, pyr, p0, None, **self.lk)
+            p0b, stb, _ = cv2.calcOpticalFlowPyrLK(pyr, self.prev_pyr, p1, None, **self.lk)
+            fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+            p1 = p1.reshape(-1, 2)
+            ok = (st.ravel() == 1) & (stb.ravel() == 1) & (fb < self.cfg.forward_backward_px)
+            ok &= (p1[:, 0] >= b) & (p1[:, 1] >= b) & (p1[:, 0] < w - b) & (p1[:, 1] < h - b)
+            if mask is not None and ok.any():
+                xi = np.clip(p1[:, 0].astype(int), 0, w - 1)
+                yi = np.clip(p1[:, 1].astype(int), 0, h - 1)
+                ok &= mask[yi, xi] > 0
+            self.ids, self.pts, self.ages = self.ids[ok], p1[ok].astype(np.float32), self.ages[ok] + 1
+        self.prev_pyr = pyr
+        n_new = self._detect(image, mask)
+        self._hist.keep_only(self.ids)
+        self._hist.add(self.frame, self.ids, self.pts)
+        return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), n_new)
+
+    def _detect(self, image: np.ndarray, mask: Optional[np.ndarray]) -> int:
+        cfg = self.cfg
+        need = cfg.max_features - len(self.ids)
+        if need < max(5, cfg.max_features // 10):
+            return 0
+        h, w = image.shape[:2]
+        b = cfg.border_px
+        m = np.zeros((h, w), np.uint8)
+        m[b : h - b, b : w - b] = 255
+        if mask is not None:
+            m &= np.where(mask > 0, 255, 0).astype(np.uint8)
+        r = int(round(cfg.min_distance_px))
+        for x, y in self.pts.astype(int):
+            cv2.circle(m, (int(x), int(y)), r, 0, -1)
+        cand = cv2.goodFeaturesToTrack(image, maxCorners=3 * need, qualityLevel=cfg.quality_level,
+                                       minDistance=cfg.min_distance_px, mask=m, blockSize=5)
+        if cand is None:
+            return 0
+        cand = cand.reshape(-1, 2)
+        cells = cfg.grid_cols * cfg.grid_rows
+        per_cell = int(np.ceil(1.5 * cfg.max_features / cells))
+        sel = grid_select(cand, self.pts, (h, w), cfg.grid_cols, cfg.grid_rows, need, per_cell)
+        if sel.size == 0:
+            return 0
+        new_pts = cand[sel].astype(np.float32)
+        crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
+        new_pts = cv2.cornerSubPix(image, new_pts.reshape(-1, 1, 2), (3, 3), (-1, -1), crit).reshape(-1, 2)
+        new_ids = np.arange(self.next_id, self.next_id + len(new_pts), dtype=np.int64)
+        self.next_id += len(new_pts)
+        self.ids = np.concatenate([self.ids, new_ids])
+        self.pts = np.concatenate([self.pts, new_pts.astype(np.float32)])
+        self.ages = np.concatenate([self.ages, np.zeros(len(new_pts), np.int32)])
+        return int(len(new_pts))
+
+
+class ORBTracker:
+    """The textbook alternative: ORB keypoints matched frame to frame (Hamming, ratio test)."""
+
+    def __init__(self, cfg: FrontendConfig):
+        self.cfg = cfg
+        self.orb = cv2.ORB_create(nfeatures=int(cfg.max_features * 2), fastThreshold=10)
+        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self.ids = np.zeros(0, np.int64)
+        self.pts = np.zeros((0, 2), np.float32)
+        self.ages = np.zeros(0, np.int32)
+        self.desc: Optional[np.ndarray] = None
+        self.next_id = 0
+        self.frame = -1
+        self._hist = _History()
+
+    def history(self, track_id: int) -> list[tuple[int, float, float]]:
+        return self._hist.data.get(int(track_id), [])
+
+    def drop(self, ids: np.ndarray) -> None:
+        keep = ~np.isin(self.ids, ids)
+        self.ids, self.pts, self.ages = self.ids[keep], self.pts[keep], self.ages[keep]
+        if self.desc is not None:
+            self.desc = self.desc[keep]
+        self._hist.keep_only(self.ids)
+
+    def track(self, image: np.ndarray, mask: Optional[np.ndarray] = None) -> TrackSet:
+        self.frame += 1
+        h, w = image.shape[:2]
+        kps, desc = self.orb.detectAndCompute(image, mask)
+        if desc is None or len(kps) == 0:
+            self.ids, self.pts, self.ages, self.desc = self.ids[:0], self.pts[:0], self.ages[:0], None
+            self._hist.keep_only(self.ids)
+            return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), 0)
+        pts = np.array([k.pt for k in kps], np.float32)
+        resp = np.array([k.response for k in kps])
+        order = np.argsort(-resp)
+        pts, desc = pts[order], desc[order]
+        new_ids = np.full(len(pts), -1, np.int64)
+        new_ages = np.zeros(len(pts), np.int32)
+        if self.desc is not None and len(self.desc) >= 2 and len(desc) >= 2:
+            matches = self.matcher.knnMatch(desc, self.desc, k=2)
+            used = set()
+            for mlist in matches:
+                if len(mlist) < 2:
+                    continue
+                m, n = mlist
+                if m.distance < 0.75 * n.distance and m.trainIdx not in used:
+                    if np.linalg.norm(pts[m.queryIdx] - self.pts[m.trainIdx]) < 0.25 * max(h, w):
+                        used.add(m.trainIdx)
+                        new_ids[m.queryIdx] = self.ids[m.trainIdx]
+                        new_ages[m.queryIdx] = self.ages[m.trainIdx] + 1
+        matched = new_ids >= 0
+        budget = max(self.cfg.max_features - int(matched.sum()), 0)
+        cells = self.cfg.grid_cols * self.cfg.grid_rows
+        per_cell = int(np.ceil(1.5 * self.cfg.max_features / cells))
+        free = np.nonzero(~matched)[0]
+        sel = free[grid_select(pts[free], pts[matched], (h, w), self.cfg.grid_cols, self.cfg.grid_rows, budget, per_cell)]
+        n_new = len(sel)
+        new_ids[sel] = np.arange(self.next_id, self.next_id + n_new)
+        self.next_id += n_new
+        keep = new_ids >= 0
+        self.ids, self.pts, self.ages, self.desc = new_ids[keep], pts[keep], new_ages[keep], desc[keep]
+        self._hist.keep_only(self.ids)
+        self._hist.add(self.frame, self.ids, self.pts)
+        return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), n_new)

@@ -1,0 +1,1 @@
+"""Input and output: sequence folders, trajectory files, wheel odometry, stats."""

@@ -1,0 +1,206 @@
+"""The native sequence folder: the contract every dataset converts to.
+
+::
+
+    images/          frames (png/jpg/bmp), in file-name order
+    times.txt        one timestamp (s) per frame; optional, else ``fps`` from the config
+    camera.yaml      width, height, fx, fy, cx, cy, distortion_model, distortion, T_base_cam
+    odometry.csv     optional wheel odometry (timestamp,x,y,yaw), same clock as times.txt
+    groundtruth.txt  optional, TUM format: pose of the base in world
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Optional
+
+import cv2
+import numpy as np
+import yaml
+
+from ..camera import CameraModel, DistortionModel
+from ..errors import CalibrationError, FrameError, SequenceError
+from .odometry import WheelOdometry, read_odometry_csv
+from .trajectory import Trajectory, read_tum
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".tif", ".tiff"}
+CAMERA_KEYS = {"width", "height", "fx", "fy", "cx", "cy", "distortion_model", "distortion", "T_base_cam"}
+
+
+@dataclass
+class Sequence:
+    root: Path
+    image_paths: list[Path]
+    timestamps: np.ndarray
+    camera: CameraModel
+    odometry: Optional[WheelOdometry] = None
+    groundtruth: Optional[Trajectory] = None
+    warnings: list[str] = field(default_factory=list)
+    name: str = ""
+
+    def __len__(self) -> int:
+        return len(self.image_paths)
+
+    def read_image(self, i: int) -> np.ndarray:
+        """Grayscale uint8 image of frame i; raises FrameError when it cannot be used."""
+        p = self.image_paths[i]
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise FrameError(f"frame {i} ({p.name}): unreadable image file")
+        if img.shape != (self.camera.height, self.camera.width):
+            raise FrameError(
+                f"frame {i} ({p.name}): size {img.shape[1]}x{img.shape[0]} differs from camera "
+                f"{self.camera.width}x{self.camera.height}"
+            )
+        return img
+
+    def indices(self, max_frames: Optional[int] = None) -> Iterator[int]:
+        n = len(self) if max_frames is None else min(len(self), max_frames)
+        return iter(range(n))
+
+
+def list_images(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        raise SequenceError(f"image folder not found: {folder}")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if not files:
+        raise SequenceError(f"no images (png/jpg/bmp) in {folder}")
+    return files
+
+
+def read_times(path: Path, n_frames: int) -> np.ndarray:
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise SequenceError(f"cannot read {path.name}: {err}") from None
+    vals = []
+    for lineno, line in enumerate(text.splitlines(), 1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        try:
+            vals.append(float(s.split()[0].rstrip(",")))
+        except ValueError:
+            raise SequenceError(f"{path.name}:{lineno}: not a timestamp: '{s}'") from None
+    t = np.asarray(vals, dtype=float)
+    if len(t) != n_frames:
+        raise SequenceError(f"{path.name} has {len(t)} timestamps but images/ has {n_frames} frames")
+    if not np.all(np.isfinite(t)):
+        raise SequenceError(f"{path.name}: contains non-finite timestamps")
+    if np.any(np.diff(t) <= 0):
+        i = int(np.argmax(np.diff(t) <= 0))
+        raise SequenceError(f"{path.name}: timestamps are not strictly increasing (line {i + 2})")
+    return t
+
+
+def _number(d: dict, key: str, path: Path) -> float:
+    if key not in d:
+        raise CalibrationError(f"{path.name}: missing key '{key}'")
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise CalibrationError(f"{path.name}: '{key}' must be a number, got {v!r}")
+    if not np.isfinite(v):
+        raise CalibrationError(f"{path.name}: '{key}' must be finite")
+    return float(v)
+
+
+def read_camera_yaml(path: Path) -> CameraModel:
+    if not path.is_file():
+        raise CalibrationError(f"camera calibration not found: {path}")
+    try:
+        d = yaml.safe_load(path.read_text())
+    except (OSError, UnicodeDecodeError) as err:
+        raise CalibrationError(f"cannot read {path.name}: {err}") from None
+    except yaml.YAMLError:
+        raise CalibrationError(f"{path.name} is not valid YAML") from None
+    if not isinstance(d, dict):
+        raise CalibrationError(f"{path.name}: expected a mapping with width, height, fx, fy, cx, cy")
+    unknown = set(d) - CAMERA_KEYS
+    if unknown:
+        raise CalibrationError(f"{path.name}: unknown key '{sorted(unknown)[0]}'")
+    w, h = _number(d, "width", path), _number(d, "height", path)
+    if w != int(w) or h != int(h):
+        raise CalibrationError(f"{path.name}: width and height must be whole numbers")
+    model = d.get("distortion_model", "none")
+    try:
+        model = DistortionModel(str(model).lower())
+    except ValueError:
+        raise CalibrationError(
+            f"{path.name}: distortion_model must be none, radtan or equidistant, got {model!r}"
+        ) from None
+    dist = d.get("distortion", []) or []
+    if not isinstance(dist, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in dist):
+        raise CalibrationError(f"{path.name}: 'distortion' must be a list of numbers")
+    T = d.get("T_base_cam")
+    if T is None:
+        raise CalibrationError(f"{path.name}: missing key 'T_base_cam' (16 numbers, row major)")
+    if isinstance(T, list) and len(T) == 4 and all(isinstance(r, list) for r in T):
+        T = [x for r in T for x in r]
+    if not isinstance(T, list) or len(T) != 16 or not all(
+        isinstance(x, (int, float)) and not isinstance(x, bool) for x in T
+    ):
+        raise CalibrationError(f"{path.name}: 'T_base_cam' must be 16 numbers, row major")
+    return CameraModel(
+        width=int(w),
+        height=int(h),
+        fx=_number(d, "fx", path),
+        fy=_number(d, "fy", path),
+        cx=_number(d, "cx", path),
+        cy=_number(d, "cy", path),
+        distortion_model=model,
+        distortion=tuple(float(x) for x in dist),
+        T_base_cam=np.asarray(T, dtype=float).reshape(4, 4),
+    )
+
+
+def write_camera_yaml(path: Path, cam: CameraModel) -> None:
+    path.write_text(yaml.safe_dump(cam.to_dict(), sort_keys=False, default_flow_style=None))
+
+
+def load_native(root: Path, fps: float = 20.0) -> Sequence:
+    root = Path(root)
+    if not root.is_dir():
+        raise SequenceError(f"sequence folder not found: {root}")
+    images = list_images(root / "images")
+    camera = read_camera_yaml(root / "camera.yaml")
+    warnings: list[str] = []
+    times_path = root / "times.txt"
+    if times_path.is_file():
+        timestamps = read_times(times_path, len(images))
+    else:
+        timestamps = np.arange(len(images), dtype=float) / fps
+        warnings.append(f"no times.txt: timestamps from fps={fps}")
+    # Check the first image's size here: a calibration for another camera is a sequence error.
+    first = cv2.imread(str(images[0]), cv2.IMREAD_GRAYSCALE)
+    if first is not None and first.shape != (camera.height, camera.width):
+        raise CalibrationError(
+            f"camera.yaml says {camera.width}x{camera.height} but {images[0].name} is {first.shape[1]}x{first.shape[0]}"
+        )
+    odometry = None
+    odo_path = root / "odometry.csv"
+    if odo_path.is_file():
+        odometry = read_odometry_csv(odo_path)
+        warnings.extend(check_odometry_overlap(odometry, timestamps))
+    groundtruth = None
+    gt_path = root / "groundtruth.txt"
+    if gt_path.is_file():
+        groundtruth = read_tum(gt_path)
+    return Sequence(root, images, timestamps, camera, odometry, groundtruth, warnings, name=root.name)
+
+
+def check_odometry_overlap(odo: WheelOdometry, timestamps: np.ndarray) -> list[str]:
+    t0, t1 = float(timestamps[0]), float(timestamps[-1])
+    o0, o1 = float(odo.timestamps[0]), float(odo.timestamps[-1])
+    overlap = min(t1, o1) - max(t0, o0)
+    if overlap <= 0:
+        raise SequenceError(
+            f"odometry.csv covers [{o0:.3f}, {o1:.3f}] s, which does not overlap the images' [{t0:.3f}, {t1:.3f}] s"
+        )
+    span = max(t1 - t0, 1e-9)
+    if overlap < span - 1e-6:
+        return [f"odometry covers only {100.0 * overlap / span:.0f}% of the images' time span"]
+    return []

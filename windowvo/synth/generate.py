@@ -1,0 +1,264 @@
+"""Synthetic sequences: rendered images, ground truth and imperfect wheel odometry.
+
+``generate_sequence(out, spec)`` writes the native layout (images/, times.txt, camera.yaml,
+odometry.csv, groundtruth.txt). Everything is deterministic for ``spec.seed``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from ..camera import CameraModel, DistortionModel
+from ..geometry import R_BASE_CAM_FORWARD, inv_T, make_T, rot_x, rot_y
+from ..io.odometry import WheelOdometry, write_odometry_csv
+from ..io.sequence import write_camera_yaml
+from ..io.trajectory import write_tum
+from .paths import PathKind, PlanarPath, make_path
+from .scene import MovingBox, Ramp, Renderer, Scene, make_room_scene
+
+
+@dataclass
+class WheelErrorModel:
+    """How simulated wheel odometry departs from the truth."""
+
+    scale_error: float = 0.01  # reported distance = (1 + scale_error) * true distance
+    yaw_bias_per_m: float = 0.01  # rad of heading error added per metre driven
+    distance_noise: float = 0.002  # m / sqrt(m) random walk on distance
+    yaw_noise: float = 0.002  # rad / sqrt(m) random walk on heading
+    slip_windows: list[tuple[float, float, float]] = field(default_factory=list)  # (t0, t1, extra factor)
+    rate_hz: float = 100.0
+
+
+@dataclass
+class SynthSpec:
+    path: PathKind = PathKind.LOOP
+    duration_s: float = 20.0
+    fps: float = 20.0
+    speed: float = 0.8
+    seed: int = 0
+    width: int = 640
+    height: int = 480
+    fx: float = 340.0
+    distortion_model: DistortionModel = DistortionModel.NONE
+    distortion: tuple[float, ...] = ()
+    camera_height_m: float = 0.45
+    camera_pitch_deg: float = 8.0
+    vibration_deg: float = 0.0  # roll/pitch vibration amplitude
+    ramp_height_m: float = 0.0  # >0 puts a ramp in the path (use with path=ramp)
+    n_obstacles: int = 10
+    n_moving: int = 0
+    image_noise: float = 0.0  # std of additive noise, grey levels
+    exposure_variation: float = 0.0  # relative gain swing (0.3 = +-30 %)
+    exposure_jumps: bool = False
+    wheel: WheelErrorModel = field(default_factory=WheelErrorModel)
+    black_frames: list[int] = field(default_factory=list)
+    duplicate_frames: list[int] = field(default_factory=list)
+    dropped_frames: list[int] = field(default_factory=list)
+    corrupt_frames: list[int] = field(default_factory=list)
+    dark_frames: list[tuple[int, int]] = field(default_factory=list)  # index ranges with gain 0.15
+    blur_frames: list[tuple[int, int]] = field(default_factory=list)  # motion-blurred index ranges
+    write_images: bool = True
+
+
+@dataclass
+class SyntheticWorld:
+    spec: SynthSpec
+    scene: Scene
+    camera: CameraModel
+    planar: PlanarPath
+
+    def T_world_base(self, t: float) -> np.ndarray:
+        return base_pose(self.planar, self.scene, t, self.spec.vibration_deg, self.spec.seed)
+
+
+def camera_for(spec: SynthSpec) -> CameraModel:
+    R_bc = R_BASE_CAM_FORWARD @ rot_x(-np.deg2rad(spec.camera_pitch_deg))
+    T_base_cam = make_T(R_bc, [0.25, 0.0, spec.camera_height_m])
+    return CameraModel(
+        spec.width,
+        spec.height,
+        spec.fx,
+        spec.fx,
+        spec.width / 2.0,
+        spec.height / 2.0,
+        spec.distortion_model,
+        tuple(spec.distortion),
+        T_base_cam,
+    )
+
+
+def base_pose(planar: PlanarPath, scene: Scene, t: float, vib_deg: float, seed: int) -> np.ndarray:
+    x, y, yaw = (float(a) for a in planar.at(t))
+    z = scene.ground_height(x, y)
+    n = scene.ground_normal(x, y)
+    h = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    xa = h - np.dot(h, n) * n
+    xa /= np.linalg.norm(xa)
+    ya = np.cross(n, xa)
+    R = np.stack([xa, ya, n], axis=1)
+    if vib_deg > 0:
+        a = np.deg2rad(vib_deg)
+        ph = (seed % 7) * 0.37
+        roll = a * (0.7 * np.sin(2 * np.pi * 1.7 * t + ph) + 0.3 * np.sin(2 * np.pi * 4.3 * t))
+        pitch = a * (0.6 * np.sin(2 * np.pi * 2.3 * t + 1.1 + ph) + 0.4 * np.sin(2 * np.pi * 5.1 * t))
+        R = R @ rot_y(pitch) @ rot_x(roll)
+        z += 0.004 * np.sin(2 * np.pi * 3.1 * t)
+    return make_T(R, [x, y, z])
+
+
+def _place_obstacles(rng, planar: PlanarPath, n: int, half: float, clearance: float = 1.3):
+    pts = planar.points()[::20]
+    out = []
+    tries = 0
+    while len(out) < n and tries < 5000:
+        tries += 1
+        ox, oy = rng.uniform(-half + 1.0, half - 1.0, 2)
+        sx, sy = rng.uniform(0.4, 1.4, 2)
+        sz = rng.uniform(0.6, 2.5)
+        r = 0.5 * np.hypot(sx, sy)
+        if np.min(np.hypot(pts[:, 0] - ox, pts[:, 1] - oy)) < clearance + r:
+            continue
+        out.append((ox, oy, sx, sy, sz))
+    return out
+
+
+def build_world(spec: SynthSpec) -> SyntheticWorld:
+    rng = np.random.default_rng(spec.seed)
+    planar = make_path(spec.path, spec.duration_s, spec.speed)
+    ramp = None
+    half_x = 9.0
+    if spec.path is PathKind.RAMP or spec.ramp_height_m > 0:
+        h = spec.ramp_height_m if spec.ramp_height_m > 0 else 0.6
+        xs = planar.x
+        span = xs.max() - xs.min()
+        ramp = Ramp(float(xs.min() + 0.3 * span), float(xs.min() + 0.6 * span), h)
+        half_x = max(9.0, float(np.abs(xs).max()) + 3.0)
+    half_x = max(half_x, float(np.abs(planar.x).max()) + 2.5)
+    half_y = max(9.0, float(np.abs(planar.y).max()) + 2.5)
+    obstacles = _place_obstacles(rng, planar, spec.n_obstacles, min(half_x, half_y))
+    moving = []
+    for k in range(spec.n_moving):
+        # Boxes that cross the path back and forth, like people or forklifts.
+        i = int(rng.integers(len(planar.t) // 5, 4 * len(planar.t) // 5))
+        px, py, pyaw = planar.x[i], planar.y[i], planar.yaw[i]
+        ahead = np.array([px, py]) + 2.5 * np.array([np.cos(pyaw), np.sin(pyaw)])
+        side = np.array([-np.sin(pyaw), np.cos(pyaw)])
+        moving.append(
+            MovingBox(ahead - 2.5 * side, ahead + 2.5 * side, (0.5, 0.5, 1.7), float(rng.uniform(5, 8)), spec.seed + 100 + k)
+        )
+    scene = make_room_scene(spec.seed, half_x, half_y, 3.0, obstacles, ramp, moving)
+    return SyntheticWorld(spec, scene, camera_for(spec), planar)
+
+
+def simulate_wheel_odometry(world: SyntheticWorld, err: WheelErrorModel, seed: int, label: str) -> WheelOdometry:
+    """Integrate noisy planar increments of the true base motion (what wheel encoders see)."""
+    rng = np.random.default_rng(seed + 7919)
+    dur = world.planar.duration
+    ts = np.arange(0.0, dur + 1e-9, 1.0 / err.rate_hz)
+    x = np.zeros(len(ts))
+    y = np.zeros(len(ts))
+    yaw = np.zeros(len(ts))
+    T_prev = world.T_world_base(ts[0])
+    for i in range(1, len(ts)):
+        T = world.T_world_base(ts[i])
+        d = inv_T(T_prev) @ T
+        T_prev = T
+        ds = float(np.hypot(d[0, 3], d[1, 3])) * np.sign(d[0, 3] if abs(d[0, 3]) > 1e-12 else 1.0)
+        dyaw = float(np.arctan2(d[1, 0], d[0, 0]))
+        # Only the heading change of the planar motion: remove roll/pitch vibration effects.
+        yaw_true_prev = float(world.planar.at(ts[i - 1])[2])
+        yaw_true = float(world.planar.at(ts[i])[2])
+        dyaw = yaw_true - yaw_true_prev
+        factor = 1.0 + err.scale_error
+        for t0, t1, extra in err.slip_windows:
+            if t0 <= ts[i] <= t1:
+                factor *= 1.0 + extra
+        dist = abs(ds)
+        ds_m = ds * factor + err.distance_noise * np.sqrt(dist) * rng.standard_normal()
+        dyaw_m = dyaw + err.yaw_bias_per_m * dist + err.yaw_noise * np.sqrt(dist) * rng.standard_normal()
+        mid = yaw[i - 1] + 0.5 * dyaw_m
+        x[i] = x[i - 1] + ds_m * np.cos(mid)
+        y[i] = y[i - 1] + ds_m * np.sin(mid)
+        yaw[i] = yaw[i - 1] + dyaw_m
+    comment = (
+        f"{label} wheel odometry: scale_error={err.scale_error}, yaw_bias_per_m={err.yaw_bias_per_m}, "
+        f"distance_noise={err.distance_noise}, yaw_noise={err.yaw_noise}, slip_windows={err.slip_windows}"
+    )
+    return WheelOdometry(ts, x, y, yaw, comment=comment)
+
+
+def frame_gain(spec: SynthSpec, i: int, rng: np.random.Generator) -> float:
+    g = 1.0
+    if spec.exposure_variation > 0:
+        if spec.exposure_jumps:
+            level = int(i // max(int(spec.fps * 2), 1))
+            g *= 1.0 + spec.exposure_variation * (1 if level % 2 else -1) * 0.8
+        else:
+            g *= 1.0 + spec.exposure_variation * np.sin(2 * np.pi * i / (spec.fps * 6))
+    for a, b in spec.dark_frames:
+        if a <= i <= b:
+            g *= 0.15
+    return g
+
+
+def generate_sequence(out: Path, spec: SynthSpec, progress: bool = False) -> SyntheticWorld:
+    out = Path(out)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    world = build_world(spec)
+    cam = world.camera
+    renderer = Renderer(world.scene, cam, seed=spec.seed) if spec.write_images else None
+    n = int(round(spec.duration_s * spec.fps)) + 1
+    times_all = np.arange(n) / spec.fps
+    keep = [i for i in range(n) if i not in set(spec.dropped_frames)]
+    rng = np.random.default_rng(spec.seed + 1)
+    gt_poses = []
+    written = 0
+    last_img = None
+    for k, i in enumerate(keep):
+        t = times_all[i]
+        T_wb = world.T_world_base(t)
+        gt_poses.append(T_wb)
+        if renderer is None:
+            continue
+        name = out / "images" / f"{written:06d}.png"
+        written += 1
+        if i in spec.corrupt_frames:
+            name.write_bytes(b"\x89PNG\r\n\x1a\n" + b"corrupt" * 10)
+            continue
+        if i in spec.duplicate_frames and last_img is not None:
+            cv2.imwrite(str(name), last_img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            continue
+        img, _ = renderer.render(T_wb @ cam.T_base_cam, t, gain=frame_gain(spec, i, rng))
+        img = img * 255.0
+        if any(a <= i <= b for a, b in spec.blur_frames):
+            ksize = 15
+            kern = np.zeros((ksize, ksize), np.float32)
+            kern[ksize // 2, :] = 1.0 / ksize
+            img = cv2.filter2D(img, -1, kern)
+        if spec.image_noise > 0:
+            img = img + rng.normal(0, spec.image_noise, img.shape).astype(np.float32)
+        img8 = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+        if i in spec.black_frames:
+            img8 = np.zeros_like(img8)
+        cv2.imwrite(str(name), img8, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        last_img = img8
+        if progress and k % 50 == 0:
+            print(f"rendered {k}/{len(keep)}", flush=True)
+    times = times_all[keep]
+    (out / "times.txt").write_text("".join(f"{t:.6f}\n" for t in times))
+    write_camera_yaml(out / "camera.yaml", cam)
+    write_tum(out / "groundtruth.txt", times, np.stack(gt_poses), header="ground truth: T_world_base (TUM)")
+    odo = simulate_wheel_odometry(world, spec.wheel, spec.seed, "synthetic")
+    write_odometry_csv(out / "odometry.csv", odo)
+    meta = asdict(spec)
+    meta["path"] = spec.path.value
+    meta["distortion_model"] = DistortionModel(spec.distortion_model).value
+    import json
+
+    (out / "synth.json").write_text(json.dumps(meta, indent=1, default=str))
+    return world

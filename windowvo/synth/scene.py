@@ -1,0 +1,397 @@
+"""A ray-cast world of textured rectangles: floor (optionally with a ramp), walls and boxes.
+
+Every surface is a bounded plane ``p = origin + u * axis_u + v * axis_v`` with
+``0 <= u <= length_u`` and ``0 <= v <= length_v``. Rendering casts one ray per pixel
+against all planes at once (vectorised), picks the nearest hit, and samples a procedural
+texture through a mip-mapped atlas (trilinear) so distant surfaces do not alias.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from ..geometry import inv_T
+
+TEXEL_M = 0.01  # texture resolution: one texel is 1 cm
+TEX_SIZE = 1024  # texels per tile side (a tile is 10.24 m)
+MIP_LEVELS = 5
+MIP_PAD = 2
+
+
+@dataclass
+class Plane:
+    origin: np.ndarray
+    axis_u: np.ndarray
+    axis_v: np.ndarray
+    length_u: float
+    length_v: float
+    tex_offset: tuple[float, float] = (0.0, 0.0)
+    brightness: float = 1.0
+
+    @property
+    def normal(self) -> np.ndarray:
+        n = np.cross(self.axis_u, self.axis_v)
+        return n / np.linalg.norm(n)
+
+    def corners(self) -> np.ndarray:
+        o, a, b = self.origin, self.axis_u * self.length_u, self.axis_v * self.length_v
+        return np.stack([o, o + a, o + a + b, o + b])
+
+
+def _rect(origin, axis_u, axis_v, lu, lv, rng: np.random.Generator, brightness: float, facing=None) -> Plane:
+    """A textured rectangle; with ``facing`` its visible side (normal) points towards that point."""
+    origin = np.asarray(origin, float)
+    au = np.asarray(axis_u, float)
+    av = np.asarray(axis_v, float)
+    if facing is not None:
+        n = np.cross(au, av)
+        if np.dot(np.asarray(facing, float) - origin, n) < 0:
+            origin = origin + au / np.linalg.norm(au) * lu
+            au = -au
+    return Plane(
+        np.asarray(origin, float),
+        au / np.linalg.norm(au),
+        av / np.linalg.norm(av),
+        float(lu),
+        float(lv),
+        (float(rng.uniform(0, 10)), float(rng.uniform(0, 10))),
+        brightness,
+    )
+
+
+def box_planes(center_xy, size_xyz, rng: np.random.Generator, z0: float = 0.0) -> list[Plane]:
+    """Four vertical faces and the top of an axis-aligned box standing on z=z0."""
+    cx, cy = center_xy
+    sx, sy, sz = size_xyz
+    x0, x1, y0, y1 = cx - sx / 2, cx + sx / 2, cy - sy / 2, cy + sy / 2
+    b = rng.uniform(0.7, 1.0)
+    return [
+        _rect([x0, y0, z0], [1, 0, 0], [0, 0, 1], sx, sz, rng, b, facing=[cx, y0 - 50, z0]),
+        _rect([x1, y1, z0], [-1, 0, 0], [0, 0, 1], sx, sz, rng, b, facing=[cx, y1 + 50, z0]),
+        _rect([x0, y1, z0], [0, -1, 0], [0, 0, 1], sy, sz, rng, b * 0.9, facing=[x0 - 50, cy, z0]),
+        _rect([x1, y0, z0], [0, 1, 0], [0, 0, 1], sy, sz, rng, b * 0.9, facing=[x1 + 50, cy, z0]),
+        _rect([x0, y0, z0 + sz], [1, 0, 0], [0, 1, 0], sx, sy, rng, b * 1.05, facing=[cx, cy, z0 + sz + 50]),
+    ]
+
+
+@dataclass
+class MovingBox:
+    start_xy: np.ndarray
+    end_xy: np.ndarray
+    size_xyz: tuple[float, float, float]
+    period_s: float
+    seed: int
+
+    def planes_at(self, t: float) -> list[Plane]:
+        s = 0.5 - 0.5 * np.cos(2 * np.pi * t / self.period_s)
+        c = (1 - s) * np.asarray(self.start_xy) + s * np.asarray(self.end_xy)
+        return box_planes(c, self.size_xyz, np.random.default_rng(self.seed))
+
+
+@dataclass
+class Ramp:
+    """Floor height h(x): 0 before x0, rising linearly to ``height`` at x1, flat after."""
+
+    x0: float
+    x1: float
+    height: float
+
+    def height_at(self, x: np.ndarray | float) -> np.ndarray | float:
+        s = np.clip((np.asarray(x, float) - self.x0) / (self.x1 - self.x0), 0.0, 1.0)
+        return s * self.height
+
+    def slope_at(self, x: float) -> float:
+        return self.height / (self.x1 - self.x0) if self.x0 < x < self.x1 else 0.0
+
+
+@dataclass
+class Scene:
+    planes: list[Plane]
+    moving: list[MovingBox] = field(default_factory=list)
+    ramp: Optional[Ramp] = None
+    texture_seed: int = 0
+
+    def ground_height(self, x: float, y: float) -> float:
+        return float(self.ramp.height_at(x)) if self.ramp is not None else 0.0
+
+    def ground_normal(self, x: float, y: float) -> np.ndarray:
+        if self.ramp is None:
+            return np.array([0.0, 0.0, 1.0])
+        s = self.ramp.slope_at(x)
+        n = np.array([-s, 0.0, 1.0])
+        return n / np.linalg.norm(n)
+
+    def planes_at(self, t: float) -> list[Plane]:
+        out = list(self.planes)
+        for m in self.moving:
+            out.extend(m.planes_at(t))
+        return out
+
+
+def make_room_scene(
+    seed: int,
+    half_x: float = 9.0,
+    half_y: float = 9.0,
+    wall_h: float = 3.0,
+    obstacles: list[tuple[float, float, float, float, float]] | None = None,
+    ramp: Optional[Ramp] = None,
+    moving: Optional[list[MovingBox]] = None,
+) -> Scene:
+    """A walled room with textured floor and box obstacles ``(x, y, sx, sy, sz)``."""
+    rng = np.random.default_rng(seed)
+    planes: list[Plane] = []
+    if ramp is None:
+        planes.append(_rect([-half_x, -half_y, 0], [1, 0, 0], [0, 1, 0], 2 * half_x, 2 * half_y, rng, 1.0, facing=[0, 0, 100]))
+    else:
+        h = ramp.height
+        L = np.hypot(ramp.x1 - ramp.x0, h)
+        planes.append(_rect([-half_x, -half_y, 0], [1, 0, 0], [0, 1, 0], ramp.x0 + half_x, 2 * half_y, rng, 1.0, facing=[0, 0, 100]))
+        planes.append(
+            _rect([ramp.x0, -half_y, 0], [ramp.x1 - ramp.x0, 0, h], [0, 1, 0], L, 2 * half_y, rng, 0.95, facing=[ramp.x0, 0, 100])
+        )
+        planes.append(_rect([ramp.x1, -half_y, h], [1, 0, 0], [0, 1, 0], half_x - ramp.x1, 2 * half_y, rng, 1.0, facing=[0, 0, 100]))
+    wb = 0.85
+    planes.append(_rect([-half_x, -half_y, -1], [1, 0, 0], [0, 0, 1], 2 * half_x, wall_h + 1, rng, wb, facing=[0, 0, 1]))
+    planes.append(_rect([half_x, half_y, -1], [-1, 0, 0], [0, 0, 1], 2 * half_x, wall_h + 1, rng, wb, facing=[0, 0, 1]))
+    planes.append(_rect([-half_x, half_y, -1], [0, -1, 0], [0, 0, 1], 2 * half_y, wall_h + 1, rng, wb * 0.9, facing=[0, 0, 1]))
+    planes.append(_rect([half_x, -half_y, -1], [0, 1, 0], [0, 0, 1], 2 * half_y, wall_h + 1, rng, wb * 0.9, facing=[0, 0, 1]))
+    for ox, oy, sx, sy, sz in obstacles or []:
+        z0 = float(ramp.height_at(ox)) if ramp is not None else 0.0
+        planes.extend(box_planes((ox, oy), (sx, sy, sz), rng, z0=z0))
+    return Scene(planes, moving or [], ramp, texture_seed=seed)
+
+
+# ---------------------------------------------------------------------------- textures
+
+
+def make_texture(seed: int, size: int = TEX_SIZE) -> np.ndarray:
+    """A tileable grey texture with blobs, patches and edges at several scales (float32, 0..1)."""
+    rng = np.random.default_rng(seed)
+    tex = np.zeros((size, size), np.float32)
+    for cells, amp in ((8, 0.35), (32, 0.25), (128, 0.2)):
+        small = rng.random((cells, cells)).astype(np.float32)
+        tiled = np.tile(small, (3, 3))
+        big = cv2.resize(tiled, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)[size : 2 * size, size : 2 * size]
+        tex += amp * big
+    # Hard-edged patches (corners for the tracker), drawn with wrap-around.
+    canvas = np.zeros((3 * size, 3 * size), np.float32)
+    mask = np.zeros_like(canvas)
+    for _ in range(900):
+        x, y = rng.integers(size, 2 * size, 2)
+        w, h = rng.integers(6, 40, 2)
+        val = float(rng.uniform(-0.5, 0.5))
+        if rng.random() < 0.5:
+            cv2.rectangle(canvas, (int(x), int(y)), (int(x + w), int(y + h)), val, -1)
+        else:
+            cv2.circle(canvas, (int(x), int(y)), int(w // 2 + 3), val, -1)
+        cv2.rectangle(mask, (int(x), int(y)), (int(x + w), int(y + h)), 1.0, -1)
+    folded = np.zeros((size, size), np.float32)
+    for i in range(3):
+        for j in range(3):
+            folded += canvas[i * size : (i + 1) * size, j * size : (j + 1) * size]
+    tex = tex + folded
+    pad = 8
+    tex = cv2.GaussianBlur(cv2.copyMakeBorder(tex, pad, pad, pad, pad, cv2.BORDER_WRAP), (0, 0), 0.8)[pad:-pad, pad:-pad]
+    tex -= tex.min()
+    tex /= max(float(tex.max()), 1e-6)
+    return 0.12 + 0.76 * tex
+
+
+class MipAtlas:
+    """Mip levels of a tileable texture laid side by side, each padded by wrapping."""
+
+    def __init__(self, texture: np.ndarray, levels: int = MIP_LEVELS):
+        self.levels = []
+        img = texture.astype(np.float32)
+        x = 0
+        blocks = []
+        for lvl in range(levels):
+            padded = cv2.copyMakeBorder(img, MIP_PAD, MIP_PAD, MIP_PAD, MIP_PAD, cv2.BORDER_WRAP)
+            self.levels.append((x + MIP_PAD, MIP_PAD, img.shape[1]))  # (x offset, y offset, size)
+            blocks.append(padded)
+            x += padded.shape[1]
+            if lvl + 1 < levels:
+                wrapped = cv2.copyMakeBorder(img, 8, 8, 8, 8, cv2.BORDER_WRAP)
+                img = cv2.pyrDown(wrapped)[4:-4, 4:-4]
+        h = blocks[0].shape[0]
+        self.atlas = np.zeros((h, x), np.float32)
+        xo = 0
+        for b in blocks:
+            self.atlas[: b.shape[0], xo : xo + b.shape[1]] = b
+            xo += b.shape[1]
+        self.offsets = np.array([lv[0] for lv in self.levels], np.float32)
+        self.sizes = np.array([lv[2] for lv in self.levels], np.float32)
+
+    def sample(self, s: np.ndarray, t: np.ndarray, level: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """Trilinear sample at texel coordinates (s, t) of level 0 and fractional mip ``level``."""
+        lv0 = np.floor(level).astype(np.int32)
+        frac = (level - lv0).astype(np.float32)
+        lv1 = np.minimum(lv0 + 1, len(self.levels) - 1)
+        out = None
+        for lv, wgt in ((lv0, 1.0 - frac), (lv1, frac)):
+            size = self.sizes[lv]
+            scale = np.float32(1.0) / (np.float32(2.0) ** lv.astype(np.float32))
+            ss = np.mod(s * scale, size)
+            tt = np.mod(t * scale, size)
+            mx = (ss + self.offsets[lv] - 0.5).astype(np.float32).reshape(shape)
+            my = (tt + MIP_PAD - 0.5).astype(np.float32).reshape(shape)
+            val = cv2.remap(self.atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            out = val * wgt.reshape(shape) if out is None else out + val * wgt.reshape(shape)
+        return out
+
+
+def raycast(planes: list[Plane], origin: np.ndarray, dirs: np.ndarray, near: float = 0.05):
+    """Nearest hit of rays ``origin + t * dirs`` with the planes.
+
+    Returns ``t`` (inf where nothing is hit), the plane index, and the plane coordinates (u, v).
+    ``dirs`` need not be unit vectors; ``t`` is in units of ``dirs``.
+    """
+    P = len(planes)
+    N = dirs.shape[0]
+    dirs32 = dirs.astype(np.float32, copy=False)
+    normals = np.stack([p.normal for p in planes]).astype(np.float32)
+    origins = np.stack([p.origin for p in planes]).astype(np.float32)
+    au = np.stack([p.axis_u for p in planes]).astype(np.float32)
+    av = np.stack([p.axis_v for p in planes]).astype(np.float32)
+    lu = np.array([p.length_u for p in planes], np.float32)
+    lv = np.array([p.length_v for p in planes], np.float32)
+    o = origin.astype(np.float32)
+    num = np.einsum("pk,pk->p", origins - o, normals)  # (P,)
+    # Cull planes that face away from the camera (the camera sits on their back side).
+    front = num < 0
+    idx_keep = np.nonzero(front)[0]
+    if idx_keep.size == 0:
+        return (np.full(N, np.inf, np.float32), np.zeros(N, np.int32), np.zeros(N, np.float32), np.zeros(N, np.float32))
+    M = np.concatenate([normals[idx_keep], au[idx_keep], av[idx_keep]], axis=0).T  # (3, 3K)
+    prod = dirs32 @ M  # (N, 3K)
+    K = idx_keep.size
+    dn, da, db = prod[:, :K], prod[:, K : 2 * K], prod[:, 2 * K :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = num[idx_keep][None, :] / dn
+    rel_u = np.einsum("pk,pk->p", o - origins[idx_keep], au[idx_keep])
+    rel_v = np.einsum("pk,pk->p", o - origins[idx_keep], av[idx_keep])
+    u = rel_u[None, :] + t * da
+    v = rel_v[None, :] + t * db
+    ok = (t > near) & (u >= 0) & (u <= lu[idx_keep][None, :]) & (v >= 0) & (v <= lv[idx_keep][None, :])
+    t = np.where(ok, t, np.inf)
+    best = np.argmin(t, axis=1)
+    rows = np.arange(N)
+    t_best = t[rows, best]
+    return t_best, idx_keep[best].astype(np.int32), u[rows, best], v[rows, best]
+
+
+class Renderer:
+    """Renders grey images of a scene for a fixed camera model (distortion included).
+
+    Planes are rasterised one at a time over the pixel block their clipped outline can
+    cover, with a depth buffer; the cost follows the covered area, not planes x pixels.
+    """
+
+    def __init__(self, scene: Scene, camera, seed: int = 0):
+        self.scene = scene
+        self.camera = camera
+        H, W = camera.height, camera.width
+        self.shape = (H, W)
+        self.rays_cam = camera.pixel_rays().astype(np.float32).reshape(H, W, 3)  # z = 1
+        xn, yn = self.rays_cam[..., 0], self.rays_cam[..., 1]
+        # Conservative normalised-coordinate range of each pixel column and row.
+        self.col_x = (xn.min(axis=0), xn.max(axis=0))
+        self.row_y = (yn.min(axis=1), yn.max(axis=1))
+        self.atlas = MipAtlas(make_texture(scene.texture_seed))
+        self.base_footprint = np.float32(1.0 / camera.fx)
+
+    def _block(self, plane: Plane, T_cam_world: np.ndarray, near: float):
+        """Row and column slices of the image the plane can cover, or None."""
+        c = plane.corners()
+        # Sample the outline densely, then clip it against z >= near in the camera frame.
+        edge = np.linspace(0.0, 1.0, 9)[:-1, None]
+        outline = np.concatenate([c[i] + edge * (c[(i + 1) % 4] - c[i]) for i in range(4)])
+        pc = outline @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        z = pc[:, 2]
+        if np.all(z < near):
+            return None
+        clipped = []
+        n = len(pc)
+        for i in range(n):
+            a, b = pc[i], pc[(i + 1) % n]
+            if a[2] >= near:
+                clipped.append(a)
+            if (a[2] >= near) != (b[2] >= near):
+                s = (near - a[2]) / (b[2] - a[2])
+                clipped.append(a + s * (b - a))
+        q = np.asarray(clipped)
+        xn = q[:, 0] / q[:, 2]
+        yn = q[:, 1] / q[:, 2]
+        x0, x1, y0, y1 = xn.min(), xn.max(), yn.min(), yn.max()
+        cols = np.nonzero((self.col_x[1] >= x0) & (self.col_x[0] <= x1))[0]
+        rows = np.nonzero((self.row_y[1] >= y0) & (self.row_y[0] <= y1))[0]
+        if cols.size == 0 or rows.size == 0:
+            return None
+        return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+
+    def render(self, T_world_cam: np.ndarray, t: float, gain: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """Image (float32 0..1) and depth (z in camera, inf where empty) seen from ``T_world_cam``."""
+        planes = self.scene.planes_at(t)
+        H, W = self.shape
+        near = 0.05
+        T_cam_world = inv_T(T_world_cam)
+        R = T_world_cam[:3, :3].astype(np.float32)
+        cam_o = T_world_cam[:3, 3]
+        zbuf = np.full((H, W), np.inf, np.float32)
+        s_tex = np.zeros((H, W), np.float32)
+        t_tex = np.zeros((H, W), np.float32)
+        cosb = np.ones((H, W), np.float32)
+        bright = np.zeros((H, W), np.float32)
+        for p in planes:
+            n = p.normal
+            num = float(np.dot(p.origin - cam_o, n))
+            if num >= 0:  # camera behind the plane's visible side
+                continue
+            blk = self._block(p, T_cam_world, near)
+            if blk is None:
+                continue
+            rs, cs = blk
+            rays = self.rays_cam[rs, cs]  # (h, w, 3) camera frame
+            # Plane quantities expressed in the camera frame: one dot product per pixel each.
+            n_c = (R.T @ n.astype(np.float32))
+            a_c = (R.T @ p.axis_u.astype(np.float32))
+            b_c = (R.T @ p.axis_v.astype(np.float32))
+            dn = rays @ n_c
+            with np.errstate(divide="ignore", invalid="ignore"):
+                depth = np.float32(num) / dn
+            rel = (cam_o - p.origin)
+            u = np.float32(rel @ p.axis_u) + depth * (rays @ a_c)
+            v = np.float32(rel @ p.axis_v) + depth * (rays @ b_c)
+            zb = zbuf[rs, cs]
+            ok = (depth > near) & (depth < zb) & (u >= 0) & (u <= p.length_u) & (v >= 0) & (v <= p.length_v)
+            if not ok.any():
+                continue
+            zb[ok] = depth[ok]
+            s_tex[rs, cs][ok] = (u[ok] + p.tex_offset[0]) / TEXEL_M
+            t_tex[rs, cs][ok] = (v[ok] + p.tex_offset[1]) / TEXEL_M
+            cosb[rs, cs][ok] = np.abs(dn[ok]) / np.linalg.norm(rays[ok], axis=1)
+            bright[rs, cs][ok] = p.brightness
+        hit = np.isfinite(zbuf)
+        dsafe = np.where(hit, zbuf, 1.0)
+        ray_len = np.sqrt((self.rays_cam * self.rays_cam).sum(axis=2))
+        footprint = dsafe * ray_len * self.base_footprint / np.sqrt(np.maximum(cosb, 0.05))
+        level = np.clip(np.log2(np.maximum(footprint / TEXEL_M, 1e-6)), 0.0, MIP_LEVELS - 1.001).astype(np.float32)
+        img = self.atlas.sample(s_tex.ravel(), t_tex.ravel(), level.ravel(), self.shape)
+        img *= bright
+        img[~hit] = 0.05
+        img *= gain
+        return img, zbuf
+
+    def surface_points(self, T_world_cam: np.ndarray, uv: np.ndarray, t: float) -> np.ndarray:
+        """World points (N,3) seen at pixels ``uv`` (nan where no surface)."""
+        rays = self.camera.unproject(uv)
+        rays = rays / rays[:, 2:3]
+        dirs = rays @ T_world_cam[:3, :3].T
+        depth, _, _, _ = raycast(self.scene.planes_at(t), T_world_cam[:3, 3], dirs)
+        p = T_world_cam[:3, 3][None, :] + depth[:, None] * dirs
+        p[~np.isfinite(depth)] = np.nan
+        return p

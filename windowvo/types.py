@@ -1,0 +1,117 @@
+"""Typed payloads passed between the pipeline stages.
+
+data provider --Frame--> front end --FrontendOutput--> back end --BackendOutput--> viz/outputs
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+
+@dataclass
+class Frame:
+    """One input image with its timestamp (seconds) and sequence index."""
+
+    index: int
+    timestamp: float
+    image: np.ndarray  # uint8 grayscale, H x W
+    mask: Optional[np.ndarray] = None  # uint8, 0 where features are forbidden
+
+
+class GateOutcome(str, enum.Enum):
+    """Result of the quality gates on a keyframe candidate."""
+
+    PASS = "pass"
+    LOW_PARALLAX = "low_parallax"
+    LOW_INLIERS = "low_inliers"
+    CHEIRALITY = "cheirality"
+    FEW_FEATURES = "few_features"
+    POOR_SPREAD = "poor_spread"
+    NOT_EVALUATED = "not_evaluated"
+
+
+class KeyframeReason(str, enum.Enum):
+    NONE = ""
+    FIRST = "first"
+    PARALLAX = "parallax"
+    TRACK_LOSS = "track_loss"
+    INTERVAL = "interval"
+    LAST = "last"
+
+
+@dataclass
+class FrontendOutput:
+    """Tracked observations of one frame.
+
+    ``track_ids[i]`` was seen at distorted pixel ``pixels[i]``, which an ideal pinhole
+    camera with the same K would see at ``pixels_undistorted[i]``.
+    """
+
+    frame_index: int
+    timestamp: float
+    track_ids: np.ndarray  # (N,) int64
+    pixels: np.ndarray  # (N, 2) distorted pixels as measured
+    pixels_undistorted: np.ndarray  # (N, 2)
+    track_ages: np.ndarray  # (N,) frames each track has lived
+    outlier_pixels: np.ndarray  # (M, 2) tracks rejected by RANSAC on this frame
+    is_keyframe: bool = False
+    keyframe_reason: KeyframeReason = KeyframeReason.NONE
+    gate: GateOutcome = GateOutcome.NOT_EVALUATED
+    vision_ok: bool = True  # back end may use vision factors for this keyframe
+    parallax_px: float = 0.0  # median parallax since the last keyframe (raw)
+    rot_comp_parallax_px: float = 0.0  # median parallax after removing rotation
+    inlier_ratio: float = 1.0
+    cheirality_ratio: float = 1.0
+    spread: float = 0.0
+    R_cam_kf_cam: Optional[np.ndarray] = None  # relative rotation last keyframe -> now (camera)
+    t_dir_kf: Optional[np.ndarray] = None  # unit translation direction (camera frame of last kf)
+    n_detected: int = 0
+    frontend_ms: float = 0.0
+    standstill: bool = False
+
+
+@dataclass
+class BackendOutput:
+    """State of the window after processing one keyframe."""
+
+    frame_index: int
+    timestamp: float
+    T_world_base: np.ndarray  # 4x4 latest keyframe estimate
+    keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)  # frame index -> T_world_base
+    p_world_landmarks: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    landmark_ids: np.ndarray = field(default_factory=lambda: np.zeros((0,), dtype=np.int64))
+    n_landmarks: int = 0
+    n_new_landmarks: int = 0
+    n_vision_factors: int = 0
+    reprojection_rms_px: float = float("nan")
+    backend_ms: float = 0.0
+    status: str = "ok"  # ok | odometry_fallback | recovered | init
+
+
+@dataclass
+class FrameRecord:
+    """Per-frame row of stats.csv."""
+
+    frame_index: int
+    timestamp: float
+    n_tracked: int
+    n_inliers: int
+    n_detected: int
+    parallax_px: float
+    rot_comp_parallax_px: float
+    inlier_ratio: float
+    cheirality_ratio: float
+    spread: float
+    is_keyframe: bool
+    keyframe_reason: str
+    gate: str
+    backend_status: str
+    n_landmarks: int
+    reprojection_rms_px: float
+    frontend_ms: float
+    backend_ms: float
+    note: str = ""

@@ -1,0 +1,1 @@
+"""Rerun viewer: live streaming and .rrd recordings."""
