@@ -13,8 +13,9 @@ handle, see GTSAM issues #1638/#1795/#2478):
   least two projection factors, all on poses still inside the window;
 * a landmark's timestamp is refreshed whenever a new keyframe observes it, so it is
   marginalised together with the last pose that saw it;
-* a landmark dropped as an outlier has its projection factors removed and, in the same
-  update, a weak prior added, so its key is never left without factors;
+* every landmark is born with a weak position prior (sigma about its depth), so a landmark
+  whose projection factors are removed as outliers, or lose their Jacobians when the point
+  falls behind a camera, is never left undetermined;
 * any remaining failure (indeterminant system, cheirality) resets the window from the last
   good pose with a prior and falls back on wheel odometry for that keyframe.
 """
@@ -50,7 +51,7 @@ def L(track_id: int) -> int:
 class LandmarkState:
     key: int
     last_kf: int
-    factor_indices: list[int] = field(default_factory=list)
+    factor_indices: list[tuple[int, int]] = field(default_factory=list)  # (keyframe, factor index)
     strikes: int = 0
 
 
@@ -111,7 +112,6 @@ class SlidingWindowBackend:
         self.landmarks: dict[int, LandmarkState] = {}
         self.dead: set[int] = set()
         self.pending_removal: list[int] = []
-        self.pending_priors: list[tuple[int, np.ndarray]] = []
         self.estimate: Optional[gtsam.Values] = None
         self.n_resets = 0
         self._new_smoother()
@@ -150,8 +150,9 @@ class SlidingWindowBackend:
             elif not use_vision:
                 status = "odometry_fallback"
         except RuntimeError as err:
-            log.warning("keyframe %d (frame %d): smoother failed (%s); resetting window from last good pose",
-                        k, fo.frame_index, str(err).splitlines()[0][:120])
+            msg = " ".join(str(err).split())[:300]
+            log.warning("keyframe %d (frame %d): smoother failed (%s); resetting the window from the last good pose",
+                        k, fo.frame_index, msg)
             self._reset_with(fo, odom, T_guess)
             n_new, n_vis = 0, 0
             status = "recovered"
@@ -284,10 +285,8 @@ class SlidingWindowBackend:
         # Outlier landmarks flagged after the previous update: remove their factors, keep the
         # key alive with a weak prior until it is marginalised.
         remove = list(self.pending_removal)
-        for key, p in self.pending_priors:
-            graph.add(gtsam.PriorFactorPoint3(key, p, gtsam.noiseModel.Isotropic.Sigma(3, 10.0)))
-        self.pending_removal, self.pending_priors = [], []
-        owners: list[Optional[int]] = [None] * graph.size()  # track id owning each new factor
+        self.pending_removal = []
+        owners: list[Optional[tuple[int, int]]] = [None] * graph.size()  # (track id, keyframe) per factor
         w0 = self.window_start(k)
         n_vis = 0
         new_lms: list[int] = []
@@ -300,7 +299,7 @@ class SlidingWindowBackend:
                 lm = self.landmarks.get(tid)
                 if lm is not None:
                     graph.add(self._proj(uv, k, lm.key))
-                    owners.append(tid)
+                    owners.append((tid, k))
                     stamps[lm.key] = float(k)
                     lm.last_kf = k
                     n_vis += 1
@@ -314,10 +313,16 @@ class SlidingWindowBackend:
                     key = L(tid)
                     values.insert(key, gtsam.Point3(p))
                     stamps[key] = float(k)
+                    # A weak prior (sigma ~ depth) keeps the landmark determined even if its
+                    # projection factors lose their Jacobians (point behind a camera) or are
+                    # removed as outliers; it is negligible next to real observations.
+                    depth = float(np.linalg.norm(p - (T_guess @ self.T_base_cam)[:3, 3]))
+                    graph.add(gtsam.PriorFactorPoint3(key, p, gtsam.noiseModel.Isotropic.Sigma(3, max(1.0, depth))))
+                    owners.append(None)
                     for kk, uv_k in lst:
                         if kk >= w0:
                             graph.add(self._proj(uv_k, kk, key))
-                            owners.append(tid)
+                            owners.append((tid, kk))
                             n_vis += 1
                     self.landmarks[tid] = LandmarkState(key, k)
                     new_lms.append(tid)
@@ -337,9 +342,9 @@ class SlidingWindowBackend:
                 self.landmarks.pop(tid, None)
                 self.dead.add(tid)
             raise
-        for fi, tid in zip(idx, owners):
-            if tid is not None and tid in self.landmarks:
-                self.landmarks[tid].factor_indices.append(int(fi))
+        for fi, owner in zip(idx, owners):
+            if owner is not None and owner[0] in self.landmarks:
+                self.landmarks[owner[0]].factor_indices.append((owner[1], int(fi)))
         self._refresh_poses()
         self._prune(k)
         self._check_outliers(fo)
@@ -381,8 +386,9 @@ class SlidingWindowBackend:
             if err > self.cfg.outlier_residual_px:
                 lm.strikes += 1
                 if lm.strikes >= 2:
-                    self.pending_removal.extend(lm.factor_indices)
-                    self.pending_priors.append((lm.key, p))
+                    # Factors on marginalised poses are already gone from the smoother.
+                    w_next = self.window_start(k + 1)
+                    self.pending_removal.extend(fi for kk, fi in lm.factor_indices if kk >= w_next)
                     del self.landmarks[tid]
                     self.dead.add(tid)
             else:
@@ -397,7 +403,7 @@ class SlidingWindowBackend:
             self.dead.add(tid)
         self.landmarks.clear()
         self.obs.clear()
-        self.pending_removal, self.pending_priors = [], []
+        self.pending_removal = []
         T_prev = self.kf_pose.get(k - 1, np.eye(4))
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
