@@ -54,7 +54,7 @@ class FrontendConfig(_Section):
     grid_rows: int = Field(6, ge=1, le=64)
     min_distance_px: float = Field(12.0, gt=0)
     quality_level: float = Field(0.01, gt=0, lt=1)
-    klt_window_px: int = Field(21, ge=5, le=101)
+    klt_window_px: int = Field(11, ge=5, le=101)
     klt_levels: int = Field(3, ge=0, le=8)
     forward_backward_px: float = Field(1.0, gt=0)
     ransac_threshold_px: float = Field(1.0, gt=0)

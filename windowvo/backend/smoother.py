@@ -331,8 +331,7 @@ class SlidingWindowBackend:
         for key, t in stamps.items():
             ts_map.insert((key, t))
         try:
-            self.smoother.update(graph, values, ts_map, remove)
-            idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
+            idx = self._submit(graph, values, ts_map, remove)
             if new_lms or k <= 2:
                 self.smoother.update()  # one more Gauss-Newton step when the structure changed
             self.estimate = self.smoother.calculateEstimate()
@@ -349,6 +348,11 @@ class SlidingWindowBackend:
         self._prune(k)
         self._check_outliers(fo)
         return len(new_lms), n_vis
+
+    def _submit(self, graph, values, ts_map, remove) -> list[int]:
+        """One smoother update; returns the smoother's indices of the new factors."""
+        self.smoother.update(graph, values, ts_map, remove)
+        return list(self.smoother.getISAM2Result().getNewFactorsIndices())
 
     def _refresh_poses(self) -> None:
         est = self.estimate

@@ -16,8 +16,8 @@ import numpy as np
 
 from ..geometry import inv_T
 
-TEXEL_M = 0.01  # texture resolution: one texel is 1 cm
-TEX_SIZE = 1024  # texels per tile side (a tile is 10.24 m)
+TEXEL_M = 0.005  # texture resolution: one texel is 5 mm
+TEX_SIZE = 1024  # texels per tile side (a tile is 5.12 m)
 MIP_LEVELS = 5
 MIP_PAD = 2
 
@@ -172,7 +172,7 @@ def make_texture(seed: int, size: int = TEX_SIZE) -> np.ndarray:
     """A tileable grey texture with blobs, patches and edges at several scales (float32, 0..1)."""
     rng = np.random.default_rng(seed)
     tex = np.zeros((size, size), np.float32)
-    for cells, amp in ((8, 0.35), (32, 0.25), (128, 0.2)):
+    for cells, amp in ((8, 0.3), (32, 0.25), (128, 0.2), (384, 0.12)):
         small = rng.random((cells, cells)).astype(np.float32)
         tiled = np.tile(small, (3, 3))
         big = cv2.resize(tiled, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)[size : 2 * size, size : 2 * size]
@@ -235,10 +235,12 @@ class MipAtlas:
         for lv, wgt in ((lv0, 1.0 - frac), (lv1, frac)):
             size = self.sizes[lv]
             scale = np.float32(1.0) / (np.float32(2.0) ** lv.astype(np.float32))
-            ss = np.mod(s * scale, size)
-            tt = np.mod(t * scale, size)
-            mx = (ss + self.offsets[lv] - 0.5).astype(np.float32).reshape(shape)
-            my = (tt + MIP_PAD - 0.5).astype(np.float32).reshape(shape)
+            # pyrDown keeps the even texels, so texel j of level l sits at level-0 index 2^l j:
+            # a continuous level-0 coordinate s (texel centres at i + 0.5) is index (s - 0.5) / 2^l.
+            ss = np.mod((s - 0.5) * scale, size)
+            tt = np.mod((t - 0.5) * scale, size)
+            mx = (ss + self.offsets[lv]).astype(np.float32).reshape(shape)
+            my = (tt + MIP_PAD).astype(np.float32).reshape(shape)
             val = cv2.remap(self.atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             out = val * wgt.reshape(shape) if out is None else out + val * wgt.reshape(shape)
         return out

@@ -1,0 +1,124 @@
+"""Bad sequence input: one clear error line and exit code 2, never a traceback."""
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from windowvo.errors import CalibrationError, SequenceError
+from windowvo.io.odometry import read_odometry_csv
+from windowvo.io.sequence import load_native
+from windowvo.io.trajectory import read_tum, write_tum
+from windowvo.geometry import make_T, rpy_to_R
+
+
+@pytest.fixture
+def seq(short_loop, tmp_path) -> Path:
+    dst = tmp_path / "seq"
+    shutil.copytree(short_loop, dst)
+    return dst
+
+
+def run_cli(seq: Path, out: Path):
+    cfg = out.parent / "c.yaml"
+    cfg.write_text(f"sequence: {seq}\noutput: {out}\nviz:\n  rerun: 'off'\nprogress: false\nmax_frames: 30\n")
+    return subprocess.run([sys.executable, "-m", "windowvo.run", str(cfg)], capture_output=True, text=True, timeout=300)
+
+
+def test_loads_valid_sequence(seq):
+    s = load_native(seq)
+    assert len(s) == len(s.timestamps) > 100
+    assert s.odometry is not None and s.odometry.synthetic
+    assert s.groundtruth is not None and len(s.groundtruth) == len(s)
+    assert s.warnings == []
+
+
+def _break(seq: Path, how: str) -> None:
+    imgs = sorted((seq / "images").iterdir())
+    if how == "missing_folder":
+        shutil.rmtree(seq)
+    elif how == "empty_images":
+        for p in imgs:
+            p.unlink()
+    elif how == "times_count":
+        lines = (seq / "times.txt").read_text().splitlines()
+        (seq / "times.txt").write_text("\n".join(lines[:-3]) + "\n")
+    elif how == "times_order":
+        lines = (seq / "times.txt").read_text().splitlines()
+        lines[10], lines[11] = lines[11], lines[10]
+        (seq / "times.txt").write_text("\n".join(lines) + "\n")
+    elif how == "camera_malformed":
+        (seq / "camera.yaml").write_text("width: 640\nheight: 480\nfx: -300\nfy: 300\ncx: 320\ncy: 240\nT_base_cam: [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]\n")
+    elif how == "camera_missing_key":
+        (seq / "camera.yaml").write_text("width: 640\nheight: 480\nfx: 300\n")
+    elif how == "camera_wrong_size":
+        txt = (seq / "camera.yaml").read_text().replace("width: 640", "width: 800")
+        (seq / "camera.yaml").write_text(txt)
+    elif how == "odometry_no_overlap":
+        rows = ["timestamp,x,y,yaw"] + [f"{1000 + i * 0.01:.3f},{i * 0.01},0,0" for i in range(100)]
+        (seq / "odometry.csv").write_text("\n".join(rows) + "\n")
+    elif how == "odometry_bad_header":
+        (seq / "odometry.csv").write_text("t,x,y\n0,0,0\n")
+    else:
+        raise ValueError(how)
+
+
+CASES = [
+    ("missing_folder", SequenceError, "not found"),
+    ("empty_images", SequenceError, "no images"),
+    ("times_count", SequenceError, "timestamps but images/ has"),
+    ("times_order", SequenceError, "not strictly increasing"),
+    ("camera_malformed", CalibrationError, "focal"),
+    ("camera_missing_key", CalibrationError, "missing key"),
+    ("camera_wrong_size", CalibrationError, "camera.yaml says"),
+    ("odometry_no_overlap", SequenceError, "does not overlap"),
+    ("odometry_bad_header", SequenceError, "header"),
+]
+
+
+@pytest.mark.parametrize("how,exc,needle", CASES)
+def test_bad_sequence_raises_clear_error(seq, how, exc, needle):
+    _break(seq, how)
+    with pytest.raises(exc, match=needle):
+        load_native(seq)
+
+
+@pytest.mark.parametrize("how", ["missing_folder", "empty_images", "times_order", "camera_malformed", "odometry_no_overlap"])
+def test_cli_exit_code_2_without_traceback(seq, tmp_path, how):
+    _break(seq, how)
+    r = run_cli(seq, tmp_path / "out")
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    err_lines = [ln for ln in r.stderr.splitlines() if ln.startswith("windowvo: error:")]
+    assert len(err_lines) == 1
+
+
+def test_partial_odometry_overlap_is_a_warning(seq):
+    odo = read_odometry_csv(seq / "odometry.csv")
+    keep = odo.timestamps <= odo.timestamps[-1] / 2
+    rows = ["timestamp,x,y,yaw"] + [f"{t},{x},{y},{w}" for t, x, y, w in zip(odo.timestamps[keep], odo.x[keep], odo.y[keep], odo.yaw[keep])]
+    (seq / "odometry.csv").write_text("\n".join(rows) + "\n")
+    s = load_native(seq)
+    assert any("odometry covers only" in w for w in s.warnings)
+
+
+def test_unreadable_image_is_skipped_and_run_goes_on(seq, tmp_path):
+    imgs = sorted((seq / "images").iterdir())
+    imgs[12].write_bytes(b"not an image")
+    r = run_cli(seq, tmp_path / "out")
+    assert r.returncode == 0, r.stderr
+    traj = read_tum(tmp_path / "out" / "trajectory.txt")
+    assert len(traj) == 30  # one line per frame, the skipped one interpolated
+    assert "unreadable" in r.stderr
+
+
+def test_tum_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    poses = np.stack([make_T(rpy_to_R(*rng.uniform(-3, 3, 3)), rng.normal(size=3)) for _ in range(20)])
+    ts = np.arange(20) * 0.1
+    write_tum(tmp_path / "t.txt", ts, poses)
+    back = read_tum(tmp_path / "t.txt")
+    assert np.allclose(back.T_world_base, poses, atol=1e-6)
