@@ -134,10 +134,8 @@ def build_world(spec: SynthSpec) -> SyntheticWorld:
     half_x = 9.0
     if spec.path is PathKind.RAMP or spec.ramp_height_m > 0:
         h = spec.ramp_height_m if spec.ramp_height_m > 0 else 0.6
-        xs = planar.x
-        span = xs.max() - xs.min()
-        ramp = Ramp(float(xs.min() + 0.3 * span), float(xs.min() + 0.6 * span), h)
-        half_x = max(9.0, float(np.abs(xs).max()) + 3.0)
+        ramp = Ramp(-2.0, 2.5, h)
+        half_x = max(9.0, float(np.abs(planar.x).max()) + 3.0)
     half_x = max(half_x, float(np.abs(planar.x).max()) + 2.5)
     half_y = max(9.0, float(np.abs(planar.y).max()) + 2.5)
     obstacles = _place_obstacles(rng, planar, spec.n_obstacles, min(half_x, half_y))

@@ -86,13 +86,27 @@ def make_path(kind: PathKind, duration: float, speed: float = 1.0, size: float =
         cum = np.concatenate([[0], np.cumsum(seg)])
         curve = curve[cum <= length]
         return _follow_curve(curve, v, dt)
-    if kind in (PathKind.STRAIGHT, PathKind.RAMP):
+    if kind is PathKind.STRAIGHT:
         length = speed * duration + 0.5
         x = np.linspace(-length / 2, length / 2, int(length * 200) + 2)
-        curve = np.stack([x, 0.3 * np.sin(x / 3.0)], axis=1) if kind is PathKind.STRAIGHT else np.stack(
-            [x, np.zeros_like(x)], axis=1
-        )
+        curve = np.stack([x, 0.3 * np.sin(x / 3.0)], axis=1)
         return _follow_curve(curve, v, dt)
+    if kind is PathKind.RAMP:
+        # A stadium loop along x: up the ramp (which spans the room's width), a U-turn on the
+        # plateau, back down, a U-turn below, and so on.
+        straight, r = 12.0, 2.5
+        pts = []
+        for lap in range(int(speed * duration / (2 * straight + 2 * np.pi * r)) + 2):
+            x = np.linspace(-straight / 2, straight / 2, 1200)
+            pts.append(np.stack([x, np.zeros_like(x)], axis=1))
+            a = np.linspace(np.pi / 2, -np.pi / 2, 800)
+            pts.append(np.stack([straight / 2 + r * np.cos(a), -r + r * np.sin(a)], axis=1))
+            pts.append(np.stack([x[::-1], np.full_like(x, -2 * r)], axis=1))
+            a = np.linspace(-np.pi / 2, -3 * np.pi / 2, 800)
+            pts.append(np.stack([-straight / 2 + r * np.cos(a), -r + r * np.sin(a)], axis=1))
+        curve = np.concatenate(pts)
+        keep = np.concatenate([[True], np.linalg.norm(np.diff(curve, axis=0), axis=1) > 1e-9])
+        return _follow_curve(curve[keep], v, dt)
     if kind is PathKind.TURN_IN_PLACE:
         # drive, spin a full turn in place, drive on.
         t = np.arange(n) * dt
