@@ -58,14 +58,15 @@ def test_monocular_run_is_up_to_scale(short_loop, tmp_path, capsys):
     assert rep.accuracy.ate_sim3_rmse_m < 0.05 * rep.accuracy.path_length_m
 
 
-def test_sigterm_keeps_results(short_loop, tmp_path):
+def test_sigterm_keeps_results(seq_factory, tmp_path):
+    seq = seq_factory("loop", **CASES["loop"])
     cfg = tmp_path / "c.yaml"
-    cfg.write_text(f"sequence: {short_loop}\noutput: {tmp_path / 'out'}\nprogress: false\n")
+    cfg.write_text(f"sequence: {seq}\noutput: {tmp_path / 'out'}\nprogress: false\n")
     p = subprocess.Popen([sys.executable, "-m", "windowvo.run", str(cfg)], stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     stats = tmp_path / "out"
-    time.sleep(6.0)
+    time.sleep(5.0)
     while time.time() < deadline and p.poll() is None:
         p.send_signal(signal.SIGTERM)
         break

@@ -157,7 +157,6 @@ class Pipeline:
             return
         frame = item
         fo = self.frontend.process(frame, self._odom_since_kf(frame.timestamp), force_keyframe=is_last)
-        self.frames.append((frame.index, frame.timestamp))
         bo: Optional[BackendOutput] = None
         note = ""
         if fo.is_keyframe:
@@ -170,6 +169,9 @@ class Pipeline:
             self.last_kf_time = frame.timestamp
             if bo.status == "recovered":
                 note = "backend reset"
+        # The frame counts as processed only once everything about it is known (an interrupt
+        # in the middle leaves frames and records in step).
+        self.frames.append((frame.index, frame.timestamp))
         self.records.append(self._record(fo, bo, note))
         if self.viewer is not None:
             self.viewer.log_frame(frame, fo, bo, self)
