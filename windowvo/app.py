@@ -14,9 +14,9 @@ from typing import Optional
 
 import numpy as np
 
-from .config import Config, DatasetKind, RerunMode
+from .config import Config, RerunMode
 from .errors import WindowVOError
-from .io.sequence import Sequence, load_native
+from .io.sequence import Sequence
 from .io.trajectory import Trajectory
 from .pipeline import Pipeline, RunResult, write_outputs
 
@@ -32,8 +32,6 @@ class JobReport:
 
 
 def load_sequence(cfg: Config) -> Sequence:
-    if cfg.dataset is DatasetKind.NATIVE:
-        return load_native(cfg.sequence, fps=cfg.fps)
     from .io import datasets
 
     return datasets.load(cfg)

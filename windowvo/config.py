@@ -130,6 +130,44 @@ class VizConfig(_Section):
     track_tail: int = Field(10, ge=0, le=100)
 
 
+class CameraConfig(_Section):
+    """Intrinsics for layouts that do not carry them (tum, folder)."""
+
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float = Field(ge=0)
+    cy: float = Field(ge=0)
+    distortion_model: str = "none"
+    distortion: list[float] = []
+    T_base_cam: Optional[list[float]] = None  # 16 numbers, row major; default: camera looking forward
+
+    @field_validator("T_base_cam")
+    @classmethod
+    def _sixteen(cls, v):
+        if v is not None and len(v) != 16:
+            raise ValueError("T_base_cam needs 16 numbers (row major)")
+        return v
+
+    @field_validator("distortion_model")
+    @classmethod
+    def _model(cls, v):
+        if v not in ("none", "radtan", "equidistant"):
+            raise ValueError("must be none, radtan or equidistant")
+        return v
+
+
+class OdometrySynthesisConfig(_Section):
+    """Wheel odometry made from ground truth, for datasets without wheels (labelled synthetic)."""
+
+    enabled: bool = False
+    scale_error: float = Field(0.01, gt=-0.5, lt=0.5)
+    yaw_bias_per_m: float = 0.005
+    noise: float = Field(0.002, ge=0)
+    seed: int = 0
+
+
 class InputChecksConfig(_Section):
     black_frame_mean: float = Field(4.0, ge=0)
     max_time_gap_factor: float = Field(3.0, gt=1)
@@ -142,6 +180,8 @@ class Config(_Section):
     fps: float = Field(20.0, gt=0)
     max_frames: Optional[int] = Field(None, gt=1)
     progress: bool = True
+    camera: Optional[CameraConfig] = None
+    odometry_synthesis: OdometrySynthesisConfig = OdometrySynthesisConfig()
     frontend: FrontendConfig = FrontendConfig()
     keyframes: KeyframeConfig = KeyframeConfig()
     gates: GateConfig = GateConfig()

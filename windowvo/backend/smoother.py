@@ -141,7 +141,9 @@ class SlidingWindowBackend:
         self.kf_time[k] = fo.timestamp
         status = "ok"
         use_vision = fo.vision_ok
-        allow_new = fo.gate is GateOutcome.PASS or k == 1
+        # New landmarks need a vision-worthy keyframe; each one is still checked for its own
+        # triangulation angle, so low overall parallax (distant scenes) does not block it.
+        allow_new = fo.gate in (GateOutcome.PASS, GateOutcome.LOW_PARALLAX) or k == 1
         T_guess = self._initial_guess(fo, odom)
         try:
             n_new, n_vis = self._update(fo, odom, T_guess, use_vision, allow_new)

@@ -23,31 +23,69 @@ from .tracker import KLTTracker, ORBTracker
 @dataclass
 class TwoViewResult:
     inlier_mask: np.ndarray  # (N,) bool, over the common tracks
-    R_cur_kf: Optional[np.ndarray]  # rotation taking kf-camera vectors into the current camera
-    t_cur_kf: Optional[np.ndarray]  # unit translation direction (current camera frame)
-    cheirality_ratio: float
-    rot_comp_parallax_px: float
+    E: Optional[np.ndarray] = None
+    R_cur_kf: Optional[np.ndarray] = None  # rotation taking kf-camera vectors into the current camera
+    t_cur_kf: Optional[np.ndarray] = None  # unit translation direction (current camera frame)
+    cheirality_ratio: float = 1.0
+    rot_comp_parallax_px: float = 0.0
 
 
-def two_view_geometry(
-    xn_kf: np.ndarray, xn_cur: np.ndarray, focal: float, threshold_px: float, confidence: float
-) -> TwoViewResult:
-    """Essential matrix (USAC/RANSAC) between normalised points, then pose with cheirality."""
+def essential_ransac(xn_kf: np.ndarray, xn_cur: np.ndarray, focal: float, threshold_px: float,
+                     confidence: float) -> TwoViewResult:
+    """Essential matrix by USAC (RANSAC family) between normalised points; marks the outliers."""
     n = len(xn_kf)
     if n < 8:
-        return TwoViewResult(np.ones(n, bool), None, None, 1.0, 0.0)
-    thr = threshold_px / focal
-    E, mask = cv2.findEssentialMat(xn_kf, xn_cur, np.eye(3), method=cv2.USAC_DEFAULT if hasattr(cv2, "USAC_DEFAULT") else cv2.RANSAC, prob=confidence, threshold=thr)
+        return TwoViewResult(np.ones(n, bool))
+    E, mask = cv2.findEssentialMat(xn_kf, xn_cur, np.eye(3), method=cv2.USAC_DEFAULT, prob=confidence,
+                                   threshold=threshold_px / focal)
     if E is None or mask is None or E.shape != (3, 3):
-        return TwoViewResult(np.ones(n, bool), None, None, 1.0, 0.0)
-    inl = mask.ravel().astype(bool)
-    n_good, R, t, mask_pose = cv2.recoverPose(E, xn_kf[inl], xn_cur[inl], np.eye(3))
-    cheir = float(n_good) / max(int(inl.sum()), 1)
+        return TwoViewResult(np.ones(n, bool))
+    return TwoViewResult(mask.ravel().astype(bool), E)
+
+
+def recover_relative_pose(res: TwoViewResult, xn_kf: np.ndarray, xn_cur: np.ndarray, focal: float) -> TwoViewResult:
+    """Relative pose from E with the cheirality check, and the rotation-compensated parallax."""
+    inl = res.inlier_mask
+    if res.E is None or inl.sum() < 5:
+        return res
+    _, R, t, _ = cv2.recoverPose(res.E, xn_kf[inl], xn_cur[inl], np.eye(3))
+    res.R_cur_kf, res.t_cur_kf = R, t.ravel()
+    res.cheirality_ratio = cheirality_share(R, t.ravel(), xn_kf[inl], xn_cur[inl])
     # Parallax after removing the rotation: how far points moved because of translation.
     rays = np.concatenate([xn_kf[inl], np.ones((int(inl.sum()), 1))], axis=1) @ R.T
     rotated = rays[:, :2] / np.maximum(rays[:, 2:3], 1e-9)
-    rcp = float(np.median(np.linalg.norm(rotated - xn_cur[inl], axis=1)) * focal) if inl.any() else 0.0
-    return TwoViewResult(inl, R, t.ravel(), cheir, rcp)
+    res.rot_comp_parallax_px = float(np.median(np.linalg.norm(rotated - xn_cur[inl], axis=1)) * focal)
+    return res
+
+
+def cheirality_share(R: np.ndarray, t: np.ndarray, xn_kf: np.ndarray, xn_cur: np.ndarray,
+                     min_angle_deg: float = 0.3) -> float:
+    """Share of triangulable correspondences (ray angle above ``min_angle_deg``) that lie in
+    front of both cameras. Points too far to triangulate count neither way, so a scene of
+    mostly distant points (a highway) is not mistaken for a cheirality failure."""
+    a = np.concatenate([xn_kf, np.ones((len(xn_kf), 1))], axis=1) @ R.T  # kf rays in the current frame
+    b = np.concatenate([xn_cur, np.ones((len(xn_cur), 1))], axis=1)
+    # Solve l_b * b - l_a * a = t for the two depths, per point (2x2 normal equations).
+    aa = np.einsum("ij,ij->i", a, a)
+    bb = np.einsum("ij,ij->i", b, b)
+    ab = np.einsum("ij,ij->i", a, b)
+    at = a @ t
+    bt = b @ t
+    det = aa * bb - ab * ab
+    cos = ab / np.sqrt(aa * bb)
+    usable = (det > 1e-12) & (cos < np.cos(np.radians(min_angle_deg)))
+    if not usable.any():
+        return 1.0
+    la = (ab * bt - bb * at) / np.where(usable, det, 1.0)
+    lb = (aa * bt - ab * at) / np.where(usable, det, 1.0)
+    good = (la > 0) & (lb > 0) & usable
+    return float(good.sum()) / float(usable.sum())
+
+
+def two_view_geometry(xn_kf: np.ndarray, xn_cur: np.ndarray, focal: float, threshold_px: float,
+                      confidence: float) -> TwoViewResult:
+    """RANSAC and relative pose in one call."""
+    return recover_relative_pose(essential_ransac(xn_kf, xn_cur, focal, threshold_px, confidence), xn_kf, xn_cur, focal)
 
 
 class Frontend:
@@ -98,6 +136,7 @@ class Frontend:
         out_pixels = np.zeros((0, 2))
         parallax = 0.0
         two_view = None
+        kf_pair = None
         n_common = 0
         if self.kf_ids is not None and len(tracks.ids):
             common, i_cur, i_kf = np.intersect1d(tracks.ids, self.kf_ids, return_indices=True)
@@ -106,9 +145,10 @@ class Frontend:
                 d = (xn[i_cur] - self.kf_xn[i_kf]) * self.focal
                 parallax = float(np.median(np.linalg.norm(d, axis=1)))
             if n_common >= 8 and parallax > 0.5:
-                two_view = two_view_geometry(
+                two_view = essential_ransac(
                     self.kf_xn[i_kf], xn[i_cur], self.focal, self.cfg.ransac_threshold_px, self.cfg.ransac_confidence
                 )
+                kf_pair = (self.kf_xn[i_kf], xn[i_cur])
                 bad_ids = common[~two_view.inlier_mask]
                 if len(bad_ids):
                     bad = np.isin(tracks.ids, bad_ids)
@@ -131,6 +171,9 @@ class Frontend:
         )
         if two_view is not None:
             out.inlier_ratio = float(two_view.inlier_mask.mean())
+        if self._is_keyframe_candidate(out, n_common, odom_motion, force_keyframe) and two_view is not None:
+            # Pose recovery (cheirality, rotation-compensated parallax) only where the gates need it.
+            recover_relative_pose(two_view, kf_pair[0], kf_pair[1], self.focal)
             out.cheirality_ratio = two_view.cheirality_ratio
             out.rot_comp_parallax_px = two_view.rot_comp_parallax_px
             out.R_cam_kf_cam = two_view.R_cur_kf
@@ -144,10 +187,34 @@ class Frontend:
         out.frontend_ms = (time.perf_counter() - t0) * 1000.0
         return out
 
+    def _keyframe_reason(
+        self, out: FrontendOutput, n_common: int, odom_motion: Optional[tuple[float, float]], force: bool
+    ) -> KeyframeReason:
+        kc = self.kf_cfg
+        tracked_ratio = n_common / max(len(self.kf_ids), 1)
+        wheels_still = odom_motion is None or (
+            odom_motion[0] < kc.standstill_distance_m and odom_motion[1] < kc.standstill_rotation_rad
+        )
+        out.standstill = out.parallax_px < kc.standstill_parallax_px and wheels_still
+        if force:
+            return KeyframeReason.LAST
+        if out.standstill:
+            return KeyframeReason.NONE
+        if out.parallax_px >= kc.min_parallax_px:
+            return KeyframeReason.PARALLAX
+        if tracked_ratio < kc.min_tracked_ratio:
+            return KeyframeReason.TRACK_LOSS
+        if out.timestamp - self.kf_time >= kc.max_interval_s:
+            return KeyframeReason.INTERVAL
+        return KeyframeReason.NONE
+
+    def _is_keyframe_candidate(self, out, n_common, odom_motion, force) -> bool:
+        return self.kf_ids is not None and self._keyframe_reason(out, n_common, odom_motion, force) is not KeyframeReason.NONE
+
     def _decide_keyframe(
         self, out: FrontendOutput, n_common: int, odom_motion: Optional[tuple[float, float]], force: bool
     ) -> None:
-        kc, gc = self.kf_cfg, self.gate_cfg
+        gc = self.gate_cfg
         if self.kf_ids is None:
             if len(out.track_ids) >= gc.min_features:
                 out.is_keyframe, out.keyframe_reason = True, KeyframeReason.FIRST
@@ -155,22 +222,7 @@ class Frontend:
             else:
                 out.gate = GateOutcome.FEW_FEATURES
             return
-        tracked_ratio = n_common / max(len(self.kf_ids), 1)
-        wheels_still = odom_motion is None or (
-            odom_motion[0] < kc.standstill_distance_m and odom_motion[1] < kc.standstill_rotation_rad
-        )
-        out.standstill = out.parallax_px < kc.standstill_parallax_px and wheels_still
-        reason = KeyframeReason.NONE
-        if force:
-            reason = KeyframeReason.LAST
-        elif out.standstill:
-            reason = KeyframeReason.NONE
-        elif out.parallax_px >= kc.min_parallax_px:
-            reason = KeyframeReason.PARALLAX
-        elif tracked_ratio < kc.min_tracked_ratio:
-            reason = KeyframeReason.TRACK_LOSS
-        elif out.timestamp - self.kf_time >= kc.max_interval_s:
-            reason = KeyframeReason.INTERVAL
+        reason = self._keyframe_reason(out, n_common, odom_motion, force)
         if reason is KeyframeReason.NONE:
             return
         out.is_keyframe, out.keyframe_reason = True, reason

@@ -131,6 +131,41 @@ class KLTTracker:
         self._hist.add(self.frame, self.ids, self.pts)
         return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), n_new)
 
+    def _grid_candidates(self, image: np.ndarray, m: np.ndarray, need: int) -> np.ndarray:
+        """Shi-Tomasi corners, searched only in the grid cells that are short of tracks.
+
+        Candidates come back sorted by corner quality within each cell; cost follows the
+        area searched, so a frame that lost tracks only at one border stays cheap.
+        """
+        cfg = self.cfg
+        h, w = image.shape[:2]
+        cols, rows = cfg.grid_cols, cfg.grid_rows
+        per_cell = int(np.ceil(cfg.max_features / (cols * rows)))
+        counts = np.zeros((rows, cols), np.int32)
+        if len(self.pts):
+            cx = np.clip((self.pts[:, 0] * cols / w).astype(int), 0, cols - 1)
+            cy = np.clip((self.pts[:, 1] * rows / h).astype(int), 0, rows - 1)
+            np.add.at(counts, (cy, cx), 1)
+        xs = np.linspace(0, w, cols + 1).astype(int)
+        ys = np.linspace(0, h, rows + 1).astype(int)
+        out = []
+        for r in range(rows):
+            for c in range(cols):
+                want = per_cell - counts[r, c]
+                if want <= 0:
+                    continue
+                roi_m = m[ys[r] : ys[r + 1], xs[c] : xs[c + 1]]
+                if not roi_m.any():
+                    continue
+                found = cv2.goodFeaturesToTrack(image[ys[r] : ys[r + 1], xs[c] : xs[c + 1]], maxCorners=int(2 * want),
+                                                qualityLevel=cfg.quality_level, minDistance=cfg.min_distance_px,
+                                                mask=roi_m, blockSize=5)
+                if found is not None:
+                    out.append(found.reshape(-1, 2) + [xs[c], ys[r]])
+        if not out:
+            return np.zeros((0, 2), np.float32)
+        return np.concatenate(out).astype(np.float32)
+
     def _detect(self, image: np.ndarray, mask: Optional[np.ndarray]) -> int:
         cfg = self.cfg
         need = cfg.max_features - len(self.ids)
@@ -145,11 +180,9 @@ class KLTTracker:
         r = int(round(cfg.min_distance_px))
         for x, y in self.pts.astype(int):
             cv2.circle(m, (int(x), int(y)), r, 0, -1)
-        cand = cv2.goodFeaturesToTrack(image, maxCorners=3 * need, qualityLevel=cfg.quality_level,
-                                       minDistance=cfg.min_distance_px, mask=m, blockSize=5)
-        if cand is None:
+        cand = self._grid_candidates(image, m, need)
+        if len(cand) == 0:
             return 0
-        cand = cand.reshape(-1, 2)
         cells = cfg.grid_cols * cfg.grid_rows
         per_cell = int(np.ceil(1.5 * cfg.max_features / cells))
         sel = grid_select(cand, self.pts, (h, w), cfg.grid_cols, cfg.grid_rows, need, per_cell)
