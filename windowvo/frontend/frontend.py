@@ -51,11 +51,25 @@ def recover_relative_pose(res: TwoViewResult, xn_kf: np.ndarray, xn_cur: np.ndar
     _, R, t, _ = cv2.recoverPose(res.E, xn_kf[inl], xn_cur[inl], np.eye(3))
     res.R_cur_kf, res.t_cur_kf = R, t.ravel()
     res.cheirality_ratio = cheirality_share(R, t.ravel(), xn_kf[inl], xn_cur[inl])
-    # Parallax after removing the rotation: how far points moved because of translation.
-    rays = np.concatenate([xn_kf[inl], np.ones((int(inl.sum()), 1))], axis=1) @ R.T
-    rotated = rays[:, :2] / np.maximum(rays[:, 2:3], 1e-9)
-    res.rot_comp_parallax_px = float(np.median(np.linalg.norm(rotated - xn_cur[inl], axis=1)) * focal)
+    res.rot_comp_parallax_px = rotation_compensated_parallax(xn_kf[inl], xn_cur[inl], focal)
     return res
+
+
+def rotation_compensated_parallax(xn_kf: np.ndarray, xn_cur: np.ndarray, focal: float) -> float:
+    """Median angle (as pixels at the focal length) left after the best pure rotation.
+
+    The rotation is fitted to the bearing vectors directly (orthogonal Procrustes), so the
+    measure does not depend on decomposing E, which is degenerate without translation.
+    """
+    a = np.concatenate([xn_kf, np.ones((len(xn_kf), 1))], axis=1)
+    b = np.concatenate([xn_cur, np.ones((len(xn_cur), 1))], axis=1)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    U, _, Vt = np.linalg.svd(b.T @ a)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt  # b ~ R a
+    cosang = np.clip(np.einsum("ij,ij->i", a @ R.T, b), -1.0, 1.0)
+    return float(np.median(np.arccos(cosang)) * focal)
 
 
 def cheirality_share(R: np.ndarray, t: np.ndarray, xn_kf: np.ndarray, xn_cur: np.ndarray,
