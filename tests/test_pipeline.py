@@ -64,12 +64,15 @@ def test_sigterm_keeps_results(seq_factory, tmp_path):
     cfg.write_text(f"sequence: {seq}\noutput: {tmp_path / 'out'}\nprogress: false\n")
     p = subprocess.Popen([sys.executable, "-m", "windowvo.run", str(cfg)], stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 120
     stats = tmp_path / "out"
-    time.sleep(5.0)
+    rrd = stats / "recording.rrd"
+    deadline = time.time() + 120
+    # wait until the run is well under way (the recording grows as frames are processed)
     while time.time() < deadline and p.poll() is None:
-        p.send_signal(signal.SIGTERM)
-        break
+        if rrd.is_file() and rrd.stat().st_size > 3_000_000:
+            break
+        time.sleep(0.05)
+    p.send_signal(signal.SIGTERM)
     out, err = p.communicate(timeout=120)
     if p.returncode == 0:
         pytest.skip("the run finished before the signal arrived")
