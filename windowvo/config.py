@@ -104,6 +104,8 @@ class PlanarPriorConfig(_Section):
 
 class BackendConfig(_Section):
     window_keyframes: int = Field(20, ge=3, le=500)
+    max_landmarks: int = Field(150, ge=10, le=5000)
+    extra_iterations: int = Field(0, ge=0, le=10)
     pixel_sigma: float = Field(1.0, gt=0)
     robust: RobustKind = RobustKind.HUBER
     huber_k: float = Field(1.345, gt=0)

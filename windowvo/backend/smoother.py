@@ -246,33 +246,42 @@ class SlidingWindowBackend:
         return gtsam.GenericProjectionFactorCal3_S2(np.asarray(uv, float), self.pixel_noise, X(k), key, self.K,
                                                     self.body_P_sensor)
 
-    def _try_triangulate(self, tid: int, poses: dict[int, np.ndarray]) -> Optional[np.ndarray]:
+    def _camera_poses(self, poses: dict[int, np.ndarray]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """T_world_cam rotation and centre per keyframe, computed once per update."""
+        out = {}
+        for kk, T in poses.items():
+            T_wc = T @ self.T_base_cam
+            out[kk] = (T_wc[:3, :3], T_wc[:3, 3])
+        return out
+
+    def _try_triangulate(self, tid: int, cams: dict[int, tuple[np.ndarray, np.ndarray]]) -> Optional[np.ndarray]:
+        """Midpoint triangulation of a track over the window, with angle, depth and reprojection checks."""
         cfg = self.cfg
-        obs = [(kk, uv) for kk, uv in self.obs.get(tid, []) if kk in poses]
+        obs = [(kk, uv) for kk, uv in self.obs.get(tid, []) if kk in cams]
         if len(obs) < 2:
             return None
-        origins, dirs = [], []
-        Kinv = np.linalg.inv(self.camera.K)
-        for kk, uv in obs:
-            T_wc = poses[kk] @ self.T_base_cam
-            d = T_wc[:3, :3] @ (Kinv @ np.array([uv[0], uv[1], 1.0]))
-            origins.append(T_wc[:3, 3])
-            dirs.append(d / np.linalg.norm(d))
-        dirs = np.asarray(dirs)
-        cosmax = np.min(dirs @ dirs.T)
-        if np.degrees(np.arccos(np.clip(cosmax, -1, 1))) < cfg.min_triangulation_angle_deg:
+        K = self.camera
+        uv = np.asarray([o[1] for o in obs])
+        R = np.stack([cams[kk][0] for kk, _ in obs])  # (n, 3, 3) R_world_cam
+        c = np.stack([cams[kk][1] for kk, _ in obs])  # (n, 3) camera centres
+        rays_c = np.stack([(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy, np.ones(len(obs))], axis=1)
+        d = np.einsum("nij,nj->ni", R, rays_c)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        if np.degrees(np.arccos(np.clip(np.min(d @ d.T), -1, 1))) < cfg.min_triangulation_angle_deg:
             return None
-        p = triangulate_midpoint(np.asarray(origins), dirs)
-        if p is None:
+        P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+        A = P.sum(axis=0)
+        b = np.einsum("nij,nj->i", P, c)
+        if np.linalg.cond(A) > 1e8:
             return None
-        for kk, uv in obs:
-            T_cw = inv_T(poses[kk] @ self.T_base_cam)
-            pc = T_cw[:3, :3] @ p + T_cw[:3, 3]
-            if pc[2] <= 0.1 or pc[2] > cfg.max_landmark_depth_m:
-                return None
-            proj = self.camera.K @ (pc / pc[2])
-            if np.hypot(proj[0] - uv[0], proj[1] - uv[1]) > cfg.max_reprojection_px:
-                return None
+        p = np.linalg.solve(A, b)
+        pc = np.einsum("nji,nj->ni", R, p[None, :] - c)  # R^T (p - c)
+        z = pc[:, 2]
+        if np.any(z <= 0.1) or np.any(z > cfg.max_landmark_depth_m):
+            return None
+        proj = np.stack([K.fx * pc[:, 0] / z + K.cx, K.fy * pc[:, 1] / z + K.cy], axis=1)
+        if np.max(np.linalg.norm(proj - uv, axis=1)) > cfg.max_reprojection_px:
+            return None
         return p
 
     def _update(self, fo: FrontendOutput, odom, T_guess, use_vision: bool, allow_new: bool) -> tuple[int, int]:
@@ -292,9 +301,12 @@ class SlidingWindowBackend:
         w0 = self.window_start(k)
         n_vis = 0
         new_lms: list[int] = []
+        candidates: list[int] = []
+        cam_center = (T_guess @ self.T_base_cam)[:3, 3]
         if use_vision:
-            poses = {kk: T for kk, T in self.kf_pose.items() if kk >= w0}
+            poses = {kk: self.kf_pose[kk] for kk in range(w0, k)}
             poses[k] = T_guess
+            cams = self._camera_poses(poses)
             for tid, uv in zip(fo.track_ids.tolist(), fo.pixels_undistorted):
                 if tid in self.dead:
                     continue
@@ -309,33 +321,42 @@ class SlidingWindowBackend:
                 lst = self.obs.setdefault(tid, [])
                 lst.append((k, np.asarray(uv, float)))
                 if allow_new and len(lst) >= 2:
-                    p = self._try_triangulate(tid, poses)
-                    if p is None:
-                        continue
-                    key = L(tid)
-                    values.insert(key, gtsam.Point3(p))
-                    stamps[key] = float(k)
-                    # A weak prior (sigma ~ depth) keeps the landmark determined even if its
-                    # projection factors lose their Jacobians (point behind a camera) or are
-                    # removed as outliers; it is negligible next to real observations.
-                    depth = float(np.linalg.norm(p - (T_guess @ self.T_base_cam)[:3, 3]))
-                    graph.add(gtsam.PriorFactorPoint3(key, p, gtsam.noiseModel.Isotropic.Sigma(3, max(1.0, depth))))
-                    owners.append(None)
-                    for kk, uv_k in lst:
-                        if kk >= w0:
-                            graph.add(self._proj(uv_k, kk, key))
-                            owners.append((tid, kk))
-                            n_vis += 1
-                    self.landmarks[tid] = LandmarkState(key, k)
-                    new_lms.append(tid)
-                    del self.obs[tid]
+                    candidates.append(tid)
+            # New landmarks, longest tracks first, up to the landmark budget of the window.
+            budget = self.cfg.max_landmarks - len(self.landmarks)
+            candidates.sort(key=lambda t: -len(self.obs[t]))
+            for tid in candidates:
+                if budget <= 0:
+                    break
+                lst = self.obs[tid]
+                p = self._try_triangulate(tid, cams)
+                if p is None:
+                    continue
+                key = L(tid)
+                values.insert(key, gtsam.Point3(p))
+                stamps[key] = float(k)
+                # A weak prior (sigma ~ depth) keeps the landmark determined even if its
+                # projection factors lose their Jacobians (point behind a camera) or are
+                # removed as outliers; it is negligible next to real observations.
+                depth = float(np.linalg.norm(p - cam_center))
+                graph.add(gtsam.PriorFactorPoint3(key, p, gtsam.noiseModel.Isotropic.Sigma(3, max(1.0, depth))))
+                owners.append(None)
+                for kk, uv_k in lst:
+                    if kk >= w0:
+                        graph.add(self._proj(uv_k, kk, key))
+                        owners.append((tid, kk))
+                        n_vis += 1
+                self.landmarks[tid] = LandmarkState(key, k)
+                new_lms.append(tid)
+                del self.obs[tid]
+                budget -= 1
         ts_map = gtsam.FixedLagSmootherKeyTimestampMap()
         for key, t in stamps.items():
             ts_map.insert((key, t))
         try:
             idx = self._submit(graph, values, ts_map, remove)
-            if new_lms or k <= 2:
-                self.smoother.update()  # one more Gauss-Newton step when the structure changed
+            for _ in range(self.cfg.extra_iterations if k > 2 else 2):
+                self.smoother.update()  # more Gauss-Newton steps (iSAM2 takes one per update)
             self.estimate = self.smoother.calculateEstimate()
         except RuntimeError:
             # Undo the bookkeeping of this update before the caller resets the window.

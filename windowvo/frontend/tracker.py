@@ -30,25 +30,38 @@ class Tracker(Protocol):
 
     def drop(self, ids: np.ndarray) -> None: ...
 
-    def history(self, track_id: int) -> list[tuple[int, float, float]]: ...
+    def history(self, track_id: int, last: Optional[int] = None) -> list[tuple[int, float, float]]: ...
 
 
-@dataclass
 class _History:
-    max_len: int = 10_000
-    data: dict[int, list[tuple[int, float, float]]] = field(default_factory=dict)
+    """Pixel history of the live tracks, stored per frame as arrays (cheap to append).
 
-    def add(self, frame: int, ids: np.ndarray, pts: np.ndarray) -> None:
-        for i, p in zip(ids.tolist(), pts.tolist()):
-            h = self.data.setdefault(i, [])
-            h.append((frame, p[0], p[1]))
-            if len(h) > self.max_len:
-                del h[0]
+    Frames older than the birth of the oldest live track are dropped, so every live track's
+    full history is kept and memory stays bounded by the longest-lived track.
+    """
 
-    def keep_only(self, ids: np.ndarray) -> None:
-        live = set(ids.tolist())
-        for k in [k for k in self.data if k not in live]:
-            del self.data[k]
+    def __init__(self) -> None:
+        self.frames: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame, ids, pixels)
+
+    def add(self, frame: int, ids: np.ndarray, pts: np.ndarray, ages: np.ndarray) -> None:
+        self.frames.append((frame, ids.copy(), pts.copy()))
+        oldest_birth = frame - int(ages.max()) if len(ages) else frame
+        drop = 0
+        while drop < len(self.frames) - 1 and self.frames[drop][0] < oldest_birth:
+            drop += 1
+        if drop:
+            del self.frames[:drop]
+
+    def get(self, track_id: int, last: Optional[int] = None) -> list[tuple[int, float, float]]:
+        out = []
+        for frame, ids, pts in reversed(self.frames):
+            hit = np.nonzero(ids == track_id)[0]
+            if hit.size == 0:
+                break
+            out.append((frame, float(pts[hit[0], 0]), float(pts[hit[0], 1])))
+            if last is not None and len(out) >= last:
+                break
+        return out[::-1]
 
 
 def grid_select(
@@ -95,17 +108,17 @@ class KLTTracker:
         self._hist = _History()
         win = (cfg.klt_window_px, cfg.klt_window_px)
         self.lk = dict(winSize=win, maxLevel=cfg.klt_levels,
-                       criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+                       criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
 
-    def history(self, track_id: int) -> list[tuple[int, float, float]]:
-        return self._hist.data.get(int(track_id), [])
+    def history(self, track_id: int, last: Optional[int] = None) -> list[tuple[int, float, float]]:
+        """Pixel positions (frame, u, v) of a live track, oldest first (the last ``last`` only)."""
+        return self._hist.get(int(track_id), last)
 
     def drop(self, ids: np.ndarray) -> None:
         if len(ids) == 0:
             return
         keep = ~np.isin(self.ids, ids)
         self.ids, self.pts, self.ages = self.ids[keep], self.pts[keep], self.ages[keep]
-        self._hist.keep_only(self.ids)
 
     def track(self, image: np.ndarray, mask: Optional[np.ndarray] = None) -> TrackSet:
         self.frame += 1
@@ -115,7 +128,8 @@ class KLTTracker:
         if self.prev_pyr is not None and len(self.pts):
             p0 = self.pts.reshape(-1, 1, 2)
             p1, st, _ = cv2.calcOpticalFlowPyrLK(self.prev_pyr, pyr, p0, None, **self.lk)
-            p0b, stb, _ = cv2.calcOpticalFlowPyrLK(pyr, self.prev_pyr, p1, None, **self.lk)
+            p0b, stb, _ = cv2.calcOpticalFlowPyrLK(pyr, self.prev_pyr, p1, p0.copy(), **self.lk,
+                                                   flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
             fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
             p1 = p1.reshape(-1, 2)
             ok = (st.ravel() == 1) & (stb.ravel() == 1) & (fb < self.cfg.forward_backward_px)
@@ -127,8 +141,7 @@ class KLTTracker:
             self.ids, self.pts, self.ages = self.ids[ok], p1[ok].astype(np.float32), self.ages[ok] + 1
         self.prev_pyr = pyr
         n_new = self._detect(image, mask)
-        self._hist.keep_only(self.ids)
-        self._hist.add(self.frame, self.ids, self.pts)
+        self._hist.add(self.frame, self.ids, self.pts, self.ages)
         return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), n_new)
 
     def _grid_candidates(self, image: np.ndarray, m: np.ndarray, need: int) -> np.ndarray:
@@ -214,15 +227,15 @@ class ORBTracker:
         self.frame = -1
         self._hist = _History()
 
-    def history(self, track_id: int) -> list[tuple[int, float, float]]:
-        return self._hist.data.get(int(track_id), [])
+    def history(self, track_id: int, last: Optional[int] = None) -> list[tuple[int, float, float]]:
+        """Pixel positions (frame, u, v) of a live track, oldest first (the last ``last`` only)."""
+        return self._hist.get(int(track_id), last)
 
     def drop(self, ids: np.ndarray) -> None:
         keep = ~np.isin(self.ids, ids)
         self.ids, self.pts, self.ages = self.ids[keep], self.pts[keep], self.ages[keep]
         if self.desc is not None:
             self.desc = self.desc[keep]
-        self._hist.keep_only(self.ids)
 
     def track(self, image: np.ndarray, mask: Optional[np.ndarray] = None) -> TrackSet:
         self.frame += 1
@@ -230,7 +243,6 @@ class ORBTracker:
         kps, desc = self.orb.detectAndCompute(image, mask)
         if desc is None or len(kps) == 0:
             self.ids, self.pts, self.ages, self.desc = self.ids[:0], self.pts[:0], self.ages[:0], None
-            self._hist.keep_only(self.ids)
             return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), 0)
         pts = np.array([k.pt for k in kps], np.float32)
         resp = np.array([k.response for k in kps])
@@ -261,6 +273,5 @@ class ORBTracker:
         self.next_id += n_new
         keep = new_ids >= 0
         self.ids, self.pts, self.ages, self.desc = new_ids[keep], pts[keep], new_ages[keep], desc[keep]
-        self._hist.keep_only(self.ids)
-        self._hist.add(self.frame, self.ids, self.pts)
+        self._hist.add(self.frame, self.ids, self.pts, self.ages)
         return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), n_new)

@@ -122,7 +122,7 @@ class RerunLogger:
         if tail > 1:
             strips = []
             for tid in fo.track_ids[:: max(1, len(fo.track_ids) // 150)]:
-                h = pipe.frontend.tracker.history(int(tid))[-tail:]
+                h = pipe.frontend.tracker.history(int(tid), last=tail)
                 if len(h) >= 2:
                     strips.append(np.asarray([(u, v) for _, u, v in h]))
             rec.log(f"{cam_path}/tails", rr.LineStrips2D(strips, colors=[[90, 200, 255]], radii=0.8))

@@ -1,0 +1,284 @@
+"""``python -m windowvo.bench``: accuracy, speed and memory against baselines, in one run.
+
+Suites:
+
+* ``sequences`` (default): rendered synthetic sequences (loop, figure eight with vibration,
+  ramp, stop-and-go, wheel slip) and the KITTI excerpts in ``../shared/data`` when present.
+  For each: windowvo and, in the same run, wheel odometry alone and frame-to-frame
+  essential-matrix chaining scaled by wheel distance. Prints a markdown table, writes
+  ``bench.json`` and a PNG per sequence overlaying the trajectories.
+* ``frontend``: front-end time per 640x480 frame on preloaded images.
+* ``backend``: back-end time per keyframe (median, p95) on feature-level data with a
+  20-keyframe window, and resident memory after 500 and after N keyframes.
+* ``rerun``: run time with the Rerun recording on and off.
+
+Each sequence runs in its own process (``--jobs N`` runs N at once) so peak RSS is per run.
+Numbers are what this machine measured; nothing is enforced here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@dataclass
+class SeqCase:
+    name: str
+    kind: str  # synth | kitti
+    spec: Optional[dict] = None
+    path: Optional[Path] = None
+
+
+def synthetic_cases(duration: float) -> list[SeqCase]:
+    from .synth.generate import WheelErrorModel
+    from .synth.paths import PathKind
+
+    return [
+        SeqCase("loop", "synth", dict(path=PathKind.LOOP, duration_s=duration, seed=31)),
+        SeqCase("figure_eight_vibration", "synth",
+                dict(path=PathKind.FIGURE_EIGHT, duration_s=duration, seed=32, vibration_deg=1.5)),
+        SeqCase("ramp", "synth", dict(path=PathKind.RAMP, duration_s=duration, seed=33)),
+        SeqCase("stop_and_go", "synth", dict(path=PathKind.STOP_AND_GO, duration_s=duration, seed=34, image_noise=1.0)),
+        SeqCase("wheel_slip", "synth", dict(path=PathKind.LOOP, duration_s=duration, seed=35,
+                                            wheel=WheelErrorModel(slip_windows=[(8.0, 10.0, 0.4), (20.0, 21.5, 0.5)]))),
+    ]
+
+
+def kitti_cases() -> list[SeqCase]:
+    out = []
+    for name in ("kitti06_000-050", "kitti01_000-050"):
+        if (SHARED_DATA / name).is_dir():
+            out.append(SeqCase(name, "kitti", path=SHARED_DATA / name))
+    return out
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _acc_row(acc) -> dict:
+    if acc is None:
+        return {}
+    return {"ate_se3_m": acc.ate_se3_rmse_m, "ate_sim3_m": acc.ate_sim3_rmse_m, "rpe_m_per_m": acc.rpe_trans_per_m,
+            "end_drift_pct": acc.end_drift_pct, "path_m": acc.path_length_m}
+
+
+def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) -> dict:
+    """One sequence: windowvo and both baselines (runs in a worker process)."""
+    import logging
+
+    logging.basicConfig(level=logging.ERROR)
+    from .app import run_job, wheel_only_trajectory
+    from .config import config_from_dict
+    from .eval.baselines import essential_chaining
+    from .eval.metrics import evaluate, plot_trajectories
+    from .synth.generate import SynthSpec, generate_sequence
+
+    data: dict = {"progress": False, "viz": {"rerun": "save" if rerun else "off"}}
+    if case.kind == "synth":
+        seq_dir = cache / case.name
+        marker = seq_dir / "synth.json"
+        if not marker.is_file():
+            generate_sequence(seq_dir, SynthSpec(**case.spec))
+        data["sequence"] = str(seq_dir)
+    else:
+        data.update(sequence=str(case.path), dataset="kitti",
+                    odometry_synthesis={"enabled": True, "scale_error": 0.01, "yaw_bias_per_m": 0.005})
+    out = out_root / case.name
+    data["output"] = str(out)
+    cfg = config_from_dict(data)
+    rep = run_job(cfg)
+    r = rep.result
+    row = {
+        "sequence": case.name,
+        "frames": r.n_frames,
+        "keyframes": r.n_keyframes,
+        "fps": r.fps,
+        "frontend_ms_mean": float(np.mean(r.frontend_ms)) if r.frontend_ms else float("nan"),
+        "backend_ms_median": float(np.median(r.backend_ms)) if r.backend_ms else float("nan"),
+        "backend_ms_p95": float(np.percentile(r.backend_ms, 95)) if r.backend_ms else float("nan"),
+        "peak_rss_mb": _peak_rss_mb(),
+        "resets": r.n_resets,
+        "windowvo": _acc_row(rep.accuracy),
+    }
+    seq = rep.sequence
+    wheel = wheel_only_trajectory(seq, r.trajectory.timestamps)
+    row["wheel"] = _acc_row(evaluate(seq.groundtruth, wheel)) if wheel is not None else {}
+    chain = essential_chaining(seq)
+    row["chaining"] = _acc_row(evaluate(seq.groundtruth, chain.trajectory))
+    row["chaining_fps"] = chain.fps
+    row["chaining_failed_steps"] = chain.n_failed_steps
+    plot_trajectories(out / "trajectories.png", seq.groundtruth,
+                      {"windowvo": r.trajectory, "wheel odometry": wheel, "E-matrix chaining": chain.trajectory},
+                      title=case.name)
+    return row
+
+
+def sequences_table(rows: list[dict]) -> str:
+    head = ("| sequence | method | frames | fps | front-end ms/frame | back-end ms/kf (median / p95) | peak RSS MB "
+            "| ATE SE(3) m | ATE Sim(3) m | RPE m/m | end drift % |")
+    lines = [head, "|" + "---|" * 11]
+    for r in rows:
+        for method in ("windowvo", "wheel", "chaining"):
+            a = r.get(method) or {}
+            if method == "windowvo":
+                perf = (f"{r['frames']} | {r['fps']:.1f} | {r['frontend_ms_mean']:.2f} | "
+                        f"{r['backend_ms_median']:.1f} / {r['backend_ms_p95']:.1f} | {r['peak_rss_mb']:.0f}")
+            elif method == "chaining":
+                perf = f"{r['frames']} | {r['chaining_fps']:.1f} | | |"
+            else:
+                perf = f"{r['frames']} | | | |"
+            name = {"windowvo": "windowvo", "wheel": "wheel odometry", "chaining": "E-matrix chaining"}[method]
+            lines.append(
+                f"| {r['sequence']} | {name} | {perf} | {a.get('ate_se3_m', float('nan')):.3f} | "
+                f"{a.get('ate_sim3_m', float('nan')):.3f} | {a.get('rpe_m_per_m', float('nan')):.3f} | "
+                f"{a.get('end_drift_pct', float('nan')):.2f} |")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------- component suites
+
+
+def bench_frontend(cache: Path, n_frames: int = 300) -> dict:
+    from .config import FrontendConfig, GateConfig, KeyframeConfig
+    from .frontend.frontend import Frontend
+    from .io.sequence import load_native
+    from .synth.generate import SynthSpec, generate_sequence
+    from .synth.paths import PathKind
+    from .types import Frame
+
+    d = cache / "frontend_loop"
+    if not (d / "synth.json").is_file():
+        generate_sequence(d, SynthSpec(path=PathKind.LOOP, duration_s=n_frames / 20.0, seed=41))
+    seq = load_native(d)
+    imgs = [seq.read_image(i) for i in range(min(n_frames, len(seq)))]
+    out = {}
+    for tracker in ("klt", "orb"):
+        fe = Frontend(seq.camera, FrontendConfig(tracker=tracker), KeyframeConfig(), GateConfig())
+        ms = []
+        for i, im in enumerate(imgs):
+            t0 = time.perf_counter()
+            fe.process(Frame(i, float(seq.timestamps[i]), im))
+            ms.append((time.perf_counter() - t0) * 1000)
+        ms = np.asarray(ms[1:])
+        out[tracker] = {"frames": len(ms), "mean_ms": float(ms.mean()), "median_ms": float(np.median(ms)),
+                        "p95_ms": float(np.percentile(ms, 95)), "fps": float(1000.0 / ms.mean())}
+    return out
+
+
+def _rss_now_mb() -> float:
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def bench_backend(n_keyframes: int = 5000) -> dict:
+    from .backend.smoother import OdometryStep, SlidingWindowBackend
+    from .config import BackendConfig
+    from .synth.features import simulate_features
+    from .synth.generate import SynthSpec
+    from .synth.paths import PathKind
+
+    spacing = 0.4
+    duration = n_keyframes * spacing / 0.8 + 5.0
+    fs = simulate_features(SynthSpec(path=PathKind.LOOP, duration_s=duration, speed=0.8, seed=43),
+                           keyframe_spacing_m=spacing)
+    cfg = BackendConfig(window_keyframes=20)
+    be = SlidingWindowBackend(fs.world.camera, cfg, use_odometry=True)
+    ms, rss, lms = [], {}, []
+    kfs = fs.keyframes[:n_keyframes]
+    for i, fo in enumerate(kfs):
+        odom = None
+        if i > 0:
+            t0, t1 = kfs[i - 1].timestamp, fo.timestamp
+            odom = OdometryStep(fs.odometry.delta(t0, t1), fs.odometry.distance(t0, t1))
+        bo = be.add_keyframe(fo, odom)
+        ms.append(bo.backend_ms)
+        lms.append(bo.n_landmarks)
+        if i + 1 in (500, 1000, 2000, len(kfs)):
+            rss[i + 1] = _rss_now_mb()
+    ms = np.asarray(ms)
+    return {"keyframes": len(kfs), "window": cfg.window_keyframes, "landmarks_median": float(np.median(lms)),
+            "observations_per_keyframe": float(np.mean([len(f.track_ids) for f in kfs])),
+            "median_ms": float(np.median(ms)), "p95_ms": float(np.percentile(ms, 95)),
+            "rss_mb_after": {str(k): v for k, v in rss.items()}, "resets": be.n_resets}
+
+
+def bench_rerun(cache: Path, out_root: Path) -> dict:
+    case = synthetic_cases(30.0)[0]
+    res = {}
+    for on in (False, True):
+        t0 = time.perf_counter()
+        row = run_case(case, cache, out_root / ("rerun_on" if on else "rerun_off"), rerun=on)
+        res["on" if on else "off"] = {"fps": row["fps"], "wall_s": row["frames"] / row["fps"]}
+    res["overhead_pct"] = 100.0 * (res["on"]["wall_s"] / res["off"]["wall_s"] - 1.0)
+    return res
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m windowvo.bench", description=__doc__.splitlines()[0].strip("`"),
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun"])
+    p.add_argument("--out", default="windowvo_output/bench", help="outputs, JSON and plots")
+    p.add_argument("--cache", default="windowvo_output/bench_cache", help="rendered sequences (reused)")
+    p.add_argument("--duration", type=float, default=30.0, help="seconds of each synthetic sequence")
+    p.add_argument("--jobs", type=int, default=1, help="sequences run in parallel processes")
+    p.add_argument("--only", nargs="*", help="run only these sequence names")
+    p.add_argument("--backend-keyframes", type=int, default=5000)
+    a = p.parse_args(argv)
+    out, cache = Path(a.out), Path(a.cache)
+    out.mkdir(parents=True, exist_ok=True)
+    cache.mkdir(parents=True, exist_ok=True)
+    results: dict = {}
+    if "sequences" in a.suite:
+        cases = synthetic_cases(a.duration) + kitti_cases()
+        if a.only:
+            cases = [c for c in cases if c.name in a.only]
+        with ProcessPoolExecutor(max_workers=max(1, a.jobs), max_tasks_per_child=1) as ex:
+            rows = list(ex.map(run_case, cases, [cache] * len(cases), [out] * len(cases)))
+        results["sequences"] = rows
+        print("## Sequences\n")
+        print(sequences_table(rows))
+        print()
+    if "frontend" in a.suite:
+        fe = bench_frontend(cache)
+        results["frontend"] = fe
+        print("## Front end (640x480)\n\n| tracker | frames | mean ms | median ms | p95 ms | fps |\n|---|---|---|---|---|---|")
+        for k, v in fe.items():
+            print(f"| {k} | {v['frames']} | {v['mean_ms']:.2f} | {v['median_ms']:.2f} | {v['p95_ms']:.2f} | {v['fps']:.0f} |")
+        print()
+    if "backend" in a.suite:
+        with ProcessPoolExecutor(max_workers=1) as ex:
+            be = ex.submit(bench_backend, a.backend_keyframes).result()
+        results["backend"] = be
+        print("## Back end (feature-level, window 20)\n")
+        print("| keyframes | landmarks (median) | obs/kf | median ms | p95 ms | RSS MB after N keyframes |\n|---|---|---|---|---|---|")
+        rss = ", ".join(f"{k}: {v:.0f}" for k, v in be["rss_mb_after"].items())
+        print(f"| {be['keyframes']} | {be['landmarks_median']:.0f} | {be['observations_per_keyframe']:.0f} | "
+              f"{be['median_ms']:.1f} | {be['p95_ms']:.1f} | {rss} |\n")
+    if "rerun" in a.suite:
+        rr_res = bench_rerun(cache, out)
+        results["rerun"] = rr_res
+        print("## Rerun recording cost\n\n| recording | fps | wall s |\n|---|---|---|")
+        for k in ("off", "on"):
+            print(f"| {k} | {rr_res[k]['fps']:.1f} | {rr_res[k]['wall_s']:.2f} |")
+        print(f"\noverhead: {rr_res['overhead_pct']:.1f}%\n")
+    (out / "bench.json").write_text(json.dumps(results, indent=2, default=float))
+    print(f"results: {out / 'bench.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
