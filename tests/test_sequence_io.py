@@ -122,3 +122,14 @@ def test_tum_round_trip(tmp_path):
     write_tum(tmp_path / "t.txt", ts, poses)
     back = read_tum(tmp_path / "t.txt")
     assert np.allclose(back.T_world_base, poses, atol=1e-6)
+
+
+def test_featureless_sequence_is_a_clear_error(seq, tmp_path):
+    import cv2
+
+    for p in sorted((seq / "images").iterdir())[:30]:
+        cv2.imwrite(str(p), np.full((480, 640), 128, np.uint8))
+    r = run_cli(seq, tmp_path / "out")
+    assert r.returncode == 2, r.stderr
+    assert "no trackable features" in r.stderr and "Traceback" not in r.stderr
+    assert (tmp_path / "out" / "stats.csv").is_file()

@@ -81,6 +81,12 @@ def run_job(cfg: Config, progress=None) -> JobReport:
             except Exception:  # pragma: no cover - best effort only
                 pass
     write_outputs(cfg, result, cfg.output)
+    if result.n_keyframes == 0 and not result.interrupted:
+        if viewer is not None:
+            viewer.finish(pipe, result, None)
+        raise WindowVOError(
+            f"no keyframe in {result.n_frames} frames: no trackable features (images black, uniform or fully "
+            f"masked?); stats.csv in {cfg.output} says what each frame had")
     report = JobReport(result, seq)
     if seq.groundtruth is not None and len(result.trajectory) >= 3:
         from .eval.metrics import evaluate

@@ -192,7 +192,7 @@ def bench_backend(n_keyframes: int = 5000) -> dict:
     from .synth.paths import PathKind
 
     spacing = 0.4
-    duration = n_keyframes * spacing / 0.8 + 5.0
+    duration = 1.2 * n_keyframes * spacing / 0.8 + 5.0
     fs = simulate_features(SynthSpec(path=PathKind.LOOP, duration_s=duration, speed=0.8, seed=43),
                            keyframe_spacing_m=spacing)
     cfg = BackendConfig(window_keyframes=20)

@@ -42,6 +42,10 @@ class CameraModel:
                 f"camera: principal point ({self.cx}, {self.cy}) lies outside the {self.width}x{self.height} image"
             )
         n = len(self.distortion)
+        if not all(np.isfinite(d) for d in self.distortion):
+            raise CalibrationError("camera: distortion coefficients must be finite numbers")
+        if not all(np.isfinite(v) for v in (self.fx, self.fy, self.cx, self.cy)):
+            raise CalibrationError("camera: fx, fy, cx, cy must be finite")
         model = DistortionModel(self.distortion_model)
         object.__setattr__(self, "distortion_model", model)
         if model is DistortionModel.NONE and any(abs(d) > 0 for d in self.distortion):

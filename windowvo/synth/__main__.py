@@ -62,6 +62,7 @@ def main(argv=None) -> int:
     p.add_argument("--corrupt-frames", default="")
     p.add_argument("--dark-frames", default="", help="index ranges 'a,b;c,d'")
     p.add_argument("--blur-frames", default="", help="index ranges 'a,b;c,d'")
+    p.add_argument("--low-contrast-frames", default="", help="index ranges 'a,b;c,d' (texture washed out)")
     a = p.parse_args(argv)
     try:
         spec = SynthSpec(
@@ -75,6 +76,7 @@ def main(argv=None) -> int:
             black_frames=_ints(a.black_frames), duplicate_frames=_ints(a.duplicate_frames),
             dropped_frames=_ints(a.dropped_frames), corrupt_frames=_ints(a.corrupt_frames),
             dark_frames=_pairs(a.dark_frames), blur_frames=_pairs(a.blur_frames),
+            low_contrast_frames=_pairs(a.low_contrast_frames),
         )
         t0 = time.perf_counter()
         generate_sequence(a.out, spec, progress=True)

@@ -62,6 +62,7 @@ class SynthSpec:
     corrupt_frames: list[int] = field(default_factory=list)
     dark_frames: list[tuple[int, int]] = field(default_factory=list)  # index ranges with gain 0.15
     blur_frames: list[tuple[int, int]] = field(default_factory=list)  # motion-blurred index ranges
+    low_contrast_frames: list[tuple[int, int]] = field(default_factory=list)  # texture washed out (x0.08)
     write_images: bool = True
 
 
@@ -238,6 +239,8 @@ def generate_sequence(out: Path, spec: SynthSpec, progress: bool = False) -> Syn
             kern = np.zeros((ksize, ksize), np.float32)
             kern[ksize // 2, :] = 1.0 / ksize
             img = cv2.filter2D(img, -1, kern)
+        if any(a <= i <= b for a, b in spec.low_contrast_frames):
+            img = 128.0 + 0.08 * (img - float(img.mean()))
         if spec.image_noise > 0:
             img = img + rng.normal(0, spec.image_noise, img.shape).astype(np.float32)
         img8 = np.clip(img + 0.5, 0, 255).astype(np.uint8)
