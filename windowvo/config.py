@@ -36,6 +36,7 @@ class TrackerKind(str, enum.Enum):
 
 class RobustKind(str, enum.Enum):
     HUBER = "huber"
+    CAUCHY = "cauchy"  # redescending: gross outliers (wheel slip) lose almost all weight
     NONE = "none"
 
 
@@ -60,6 +61,7 @@ class FrontendConfig(_Section):
     ransac_threshold_px: float = Field(1.0, gt=0)
     ransac_confidence: float = Field(0.999, gt=0.5, lt=1)
     clahe: bool = False
+    gain_normalization: bool = True
     mask: Optional[Path] = None
     mask_folder: Optional[Path] = None
     border_px: int = Field(8, ge=0)
@@ -89,8 +91,8 @@ class OdometryNoiseConfig(_Section):
     yaw_sigma_min_rad: float = Field(0.002, gt=0)
     z_sigma_m: float = Field(0.05, gt=0)
     roll_pitch_sigma_rad: float = Field(0.05, gt=0)
-    robust: RobustKind = RobustKind.HUBER
-    huber_k: float = Field(2.0, gt=0)
+    robust: RobustKind = RobustKind.CAUCHY
+    robust_k: float = Field(1.0, gt=0)  # in sigmas
     max_gap_s: float = Field(0.5, gt=0)
 
 

@@ -69,9 +69,15 @@ def odometry_noise(cfg: BackendConfig, distance: float, yaw: float):
     s_xy = max(o.xy_sigma_min_m, o.xy_sigma_per_m * distance)
     s_yaw = max(o.yaw_sigma_min_rad, o.yaw_sigma_per_m * distance + 0.02 * abs(yaw))
     sig = np.array([o.roll_pitch_sigma_rad, o.roll_pitch_sigma_rad, s_yaw, s_xy, s_xy, o.z_sigma_m])
-    base = gtsam.noiseModel.Diagonal.Sigmas(sig)
-    if o.robust is RobustKind.HUBER:
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k), base)
+    return robust(gtsam.noiseModel.Diagonal.Sigmas(sig), o.robust, o.robust_k)
+
+
+def robust(base, kind: RobustKind, k: float):
+    """Wrap a Gaussian noise model in the configured M-estimator (threshold k in sigmas)."""
+    if kind is RobustKind.HUBER:
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
+    if kind is RobustKind.CAUCHY:
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(k), base)
     return base
 
 
@@ -98,11 +104,7 @@ class SlidingWindowBackend:
         self.K = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
         self.T_base_cam = camera.T_base_cam
         self.body_P_sensor = gtsam.Pose3(camera.T_base_cam)
-        iso = gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma)
-        if cfg.robust is RobustKind.HUBER:
-            self.pixel_noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(cfg.huber_k), iso)
-        else:
-            self.pixel_noise = iso
+        self.pixel_noise = robust(gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma), cfg.robust, cfg.huber_k)
         self.lag = float(cfg.window_keyframes - 1)
         self.k = -1
         self.kf_frame: dict[int, int] = {}

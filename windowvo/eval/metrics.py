@@ -11,6 +11,7 @@ from typing import Optional
 
 import numpy as np
 from evo.core import metrics as evo_metrics
+from evo.core.geometry import GeometryException
 from evo.core import sync as evo_sync
 from evo.core.trajectory import PoseTrajectory3D
 from evo.core.units import Unit
@@ -59,7 +60,13 @@ def evaluate(groundtruth: Trajectory, estimate: Trajectory, max_time_diff: float
 
     def ate(correct_scale: bool) -> tuple[float, float]:
         e = copy.deepcopy(est)
-        _, _, s = e.align(ref, correct_scale=correct_scale)
+        try:
+            _, _, s = e.align(ref, correct_scale=correct_scale)
+        except GeometryException:
+            # Degenerate ground-truth geometry (a straight line, a spin in place): Umeyama has no
+            # unique answer, so align the first poses instead and leave the scale alone.
+            e.align_origin(ref)
+            s = float("nan") if correct_scale else 1.0
         m = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
         m.process_data((ref, e))
         return float(m.get_statistic(evo_metrics.StatisticsType.rmse)), float(s)

@@ -144,7 +144,15 @@ class Frontend:
     def process(self, frame: Frame, odom_motion: Optional[tuple[float, float]] = None, force_keyframe: bool = False) -> FrontendOutput:
         """Track one frame. ``odom_motion`` is (distance m, |yaw| rad) since the last keyframe."""
         t0 = time.perf_counter()
-        image = frame.image if self.clahe is None else self.clahe.apply(frame.image)
+        image = frame.image
+        if self.clahe is not None:
+            image = self.clahe.apply(image)
+        elif self.cfg.gain_normalization:
+            # Cancel global exposure changes (auto-exposure steps) that break KLT's brightness
+            # constancy: scale every frame to the same mean intensity.
+            mean = float(cv2.mean(image)[0])
+            if mean > 1.0:
+                image = cv2.convertScaleAbs(image, alpha=110.0 / mean)
         tracks = self.tracker.track(image, self._mask(frame))
         xn = self.camera.undistort_normalized(tracks.pixels)
         out_pixels = np.zeros((0, 2))
