@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Literal, Optional
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -58,6 +58,7 @@ class FrontendConfig(_Section):
     klt_window_px: int = Field(11, ge=5, le=101)
     klt_levels: int = Field(3, ge=0, le=8)
     forward_backward_px: float = Field(1.0, gt=0)
+    klt_max_residual: float = Field(8.0, gt=0)  # mean abs grey difference of the tracked patch
     ransac_threshold_px: float = Field(1.0, gt=0)
     ransac_confidence: float = Field(0.999, gt=0.5, lt=1)
     clahe: bool = False
@@ -108,6 +109,7 @@ class BackendConfig(_Section):
     window_keyframes: int = Field(20, ge=3, le=500)
     max_landmarks: int = Field(150, ge=10, le=5000)
     extra_iterations: int = Field(0, ge=0, le=10)
+    optimizer: Literal["gauss_newton", "dogleg"] = "dogleg"
     pixel_sigma: float = Field(1.0, gt=0)
     robust: RobustKind = RobustKind.HUBER
     huber_k: float = Field(1.345, gt=0)

@@ -124,6 +124,10 @@ class SlidingWindowBackend:
         params.setRelinearizeThreshold(self.cfg.relinearize_threshold)
         params.relinearizeSkip = 1
         params.findUnusedFactorSlots = False
+        if self.cfg.optimizer == "dogleg":
+            # Powell's dogleg keeps iSAM2's steps inside a trust region: far landmarks with little
+            # parallax make plain Gauss-Newton overshoot.
+            params.setOptimizationParams(gtsam.ISAM2DoglegParams())
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, params)
 
     def window_start(self, k: Optional[int] = None) -> int:

@@ -127,12 +127,15 @@ class KLTTracker:
         b = self.cfg.border_px
         if self.prev_pyr is not None and len(self.pts):
             p0 = self.pts.reshape(-1, 1, 2)
-            p1, st, _ = cv2.calcOpticalFlowPyrLK(self.prev_pyr, pyr, p0, None, **self.lk)
+            p1, st, err = cv2.calcOpticalFlowPyrLK(self.prev_pyr, pyr, p0, None, **self.lk)
             p0b, stb, _ = cv2.calcOpticalFlowPyrLK(pyr, self.prev_pyr, p1, p0.copy(), **self.lk,
                                                    flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
             fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
             p1 = p1.reshape(-1, 2)
             ok = (st.ravel() == 1) & (stb.ravel() == 1) & (fb < self.cfg.forward_backward_px)
+            # KLT's residual (mean absolute grey difference of the patch): a patch that
+            # deformed (strong perspective change, occlusion) tracks with a bias; end it.
+            ok &= err.ravel() < self.cfg.klt_max_residual
             ok &= (p1[:, 0] >= b) & (p1[:, 1] >= b) & (p1[:, 0] < w - b) & (p1[:, 1] < h - b)
             if mask is not None and ok.any():
                 xi = np.clip(p1[:, 0].astype(int), 0, w - 1)
