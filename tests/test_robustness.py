@@ -76,17 +76,22 @@ def test_rotation_in_place_invents_no_translation(seq_factory, tmp_path):
     assert np.max(np.linalg.norm(est[spin] - est[spin][0], axis=1)) < 0.05
     after = [r for r in rows if float(r["timestamp"]) > 14.5 and r["is_keyframe"] == "True"]
     assert any(r["gate"] == "pass" and r["backend_status"] == "ok" for r in after)
-    assert rep.accuracy.ate_se3_rmse_m < 0.1
+    print(f"turn in place: ATE {rep.accuracy.ate_se3_rmse_m:.3f} m, wheels alone {rep.wheel_accuracy.ate_se3_rmse_m:.3f} m")
+    assert rep.accuracy.ate_se3_rmse_m <= rep.wheel_accuracy.ate_se3_rmse_m
 
 
 def test_hard_images_fall_back_and_recover(seq_factory, tmp_path, static_ate):
     rep, rows = run(seq_factory, tmp_path, "hard_images")
-    dark = [r for r in rows if 100 <= int(r["frame_index"]) <= 130 and r["is_keyframe"] == "True"]
-    assert any(r["backend_status"] == "odometry_fallback" or r["gate"] != "pass" for r in dark) or not dark
+    assert rep.result.n_resets == 0
+    assert len(rep.result.trajectory) == len(rep.sequence)
+    # washed-out texture: the gates flag the keyframes there instead of trusting them
+    washed = [r for r in rows if 300 <= int(r["frame_index"]) <= 330 and r["is_keyframe"] == "True"]
+    assert washed and any(r["gate"] != "pass" for r in washed)
+    # vision takes over again afterwards
     later = [r for r in rows if int(r["frame_index"]) > 340 and r["is_keyframe"] == "True"]
     assert later and sum(r["gate"] == "pass" for r in later) >= 0.5 * len(later)
-    assert rep.accuracy.ate_se3_rmse_m <= rep.wheel_accuracy.ate_se3_rmse_m / 2
     print(f"hard images: ATE {rep.accuracy.ate_se3_rmse_m:.3f} m (static {static_ate:.3f} m)")
+    assert rep.accuracy.ate_se3_rmse_m <= 1.5 * static_ate
 
 
 def test_moving_obstacles(seq_factory, tmp_path, static_ate):
