@@ -145,3 +145,30 @@ def test_orb_tracker_keeps_ids(world):
     a = tr.track(img0)
     b = tr.track(img1)
     assert len(np.intersect1d(a.ids, b.ids)) > 50
+
+
+def test_masks_keep_features_out(world):
+    img, _ = render(world, 2.0)
+    static = np.full(img.shape, 255, np.uint8)
+    static[300:, :] = 0  # robot body in the lower part of the view
+    per_frame = np.full(img.shape, 255, np.uint8)
+    per_frame[:, :200] = 0  # a person on the left
+    fe = Frontend(world[0].camera, FrontendConfig(), KeyframeConfig(), GateConfig(), static_mask=static)
+    for i in range(3):
+        img, _ = render(world, 2.0 + i / 20.0)
+        fo = fe.process(Frame(i, 2.0 + i / 20.0, img, mask=per_frame))
+        assert len(fo.pixels) > 50
+        assert np.all(fo.pixels[:, 1] < 300) and np.all(fo.pixels[:, 0] >= 200)
+
+
+def test_track_history_is_kept_for_live_tracks(world):
+    tr = KLTTracker(FrontendConfig())
+    for i in range(8):
+        img, _ = render(world, 1.0 + i / 20.0)
+        ts = tr.track(img)
+    oldest = int(ts.ids[np.argmax(ts.ages)])
+    hist = tr.history(oldest)
+    assert len(hist) == int(ts.ages.max()) + 1
+    assert [f for f, _, _ in hist] == list(range(8 - len(hist), 8))
+    assert np.allclose(hist[-1][1:], ts.pixels[np.argmax(ts.ages)])
+    assert len(tr.history(oldest, last=3)) == 3

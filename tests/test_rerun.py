@@ -9,7 +9,7 @@ from windowvo.io.trajectory import read_tum
 
 
 def test_recording_matches_outputs(short_loop, tmp_path):
-    cfg = make_config(short_loop, tmp_path / "out", viz={"rerun": "save"}, max_frames=80)
+    cfg = make_config(short_loop, tmp_path / "out", viz={"rerun": "save", "image_every": 1}, max_frames=80)
     rep = run_job(cfg)
     rrd = tmp_path / "out" / "recording.rrd"
     assert rrd.is_file()

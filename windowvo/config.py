@@ -126,7 +126,7 @@ class BackendConfig(_Section):
 class VizConfig(_Section):
     rerun: RerunMode = RerunMode.SAVE
     connect_url: str = "rerun+http://127.0.0.1:9876/proxy"
-    image_every: int = Field(1, ge=1)
+    image_every: int = Field(4, ge=1)  # camera image and its tracks every N frames (images dominate the cost)
 
     @field_validator("rerun", mode="before")
     @classmethod

@@ -107,30 +107,40 @@ class Pipeline:
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> RunResult:
+        """Process every frame. Ctrl-C and SIGTERM stop the run between two frames, so the
+        outputs always describe whole frames; a second Ctrl-C aborts at once."""
         t_start = time.perf_counter()
-        interrupted = False
-        old_term = signal.getsignal(signal.SIGTERM)
+        stop = {"signal": None}
 
-        def on_term(signum, frame):
-            raise RunInterrupted("SIGTERM")
+        def on_signal(signum, frame):
+            if stop["signal"] is not None and signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            stop["signal"] = signum
 
-        try:
-            signal.signal(signal.SIGTERM, on_term)
-        except ValueError:  # not in the main thread
-            old_term = None
+        previous = {}
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            try:
+                previous[sig] = signal.signal(sig, on_signal)
+            except ValueError:  # not in the main thread: no handlers, Ctrl-C raises as usual
+                pass
         n_total = len(self.provider)
+        interrupted = False
         try:
             for item in self.provider:
                 self._step(item, item.index == n_total - 1)
                 if self.progress is not None:
                     self.progress(len(self.frames), len(self.kf_frames))
+                if stop["signal"] is not None:
+                    break
         except (KeyboardInterrupt, RunInterrupted):
+            interrupted = True
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        if stop["signal"] is not None or interrupted:
             interrupted = True
             last = self.frames[-1][0] if self.frames else -1
             log.warning("interrupted after frame %d: writing the results so far", last)
-        finally:
-            if old_term is not None:
-                signal.signal(signal.SIGTERM, old_term)
         wall = time.perf_counter() - t_start
         traj = self.assemble_trajectory()
         return RunResult(
@@ -163,12 +173,14 @@ class Pipeline:
             odom = None
             if self.last_kf_time is not None:
                 odom = self._odom_step(self.last_kf_time, frame.timestamp)
+            if odom is not None and not odom.ok:
+                note = "odometry gap: vision only"
             bo = self.backend.add_keyframe(fo, odom)
             self.kf_frames.append(frame.index)
             self.kf_times.append(frame.timestamp)
             self.last_kf_time = frame.timestamp
             if bo.status == "recovered":
-                note = "backend reset"
+                note = (note + "; " if note else "") + "backend reset"
         # The frame counts as processed only once everything about it is known (an interrupt
         # in the middle leaves frames and records in step).
         self.frames.append((frame.index, frame.timestamp))

@@ -2,9 +2,10 @@
 
 Entity layout (world is z up, like the robot base):
 
-* ``world/estimate``          estimated trajectory (keyframes, line strip) and current pose
+* ``world/estimate``          estimated keyframe path (refreshed every 10 keyframes), current pose, and
+  the final per-frame trajectory
 * ``world/estimate/base/cam`` camera frustum: transform plus pinhole, with the image
-  and the tracked features (coloured by age, RANSAC outliers red, short tails)
+  and the tracked features (coloured by age, RANSAC outliers red, short tails as arrows)
 * ``world/window``            the window's keyframe poses (points)
 * ``world/landmarks``         the window's landmarks
 * ``world/wheel_odometry``    wheel odometry alone; ``world/groundtruth`` when present
@@ -111,21 +112,7 @@ class RerunLogger:
         rec.set_time("time", duration=float(frame.timestamp))
         cam_path = "world/estimate/base/cam"
         if frame.index % self.cfg.viz.image_every == 0:
-            rec.log(f"{cam_path}/image", rr.Image(frame.image))
-        rec.log(f"{cam_path}/tracks", rr.Points2D(fo.pixels, colors=age_colors(fo.track_ages), radii=2.0,
-                                                   class_ids=None))
-        if len(fo.outlier_pixels):
-            rec.log(f"{cam_path}/outliers", rr.Points2D(fo.outlier_pixels, colors=[[255, 40, 40]], radii=3.0))
-        else:
-            rec.log(f"{cam_path}/outliers", rr.Clear(recursive=False))
-        tail = self.cfg.viz.track_tail
-        if tail > 1:
-            strips = []
-            for tid in fo.track_ids[:: max(1, len(fo.track_ids) // 150)]:
-                h = pipe.frontend.tracker.history(int(tid), last=tail)
-                if len(h) >= 2:
-                    strips.append(np.asarray([(u, v) for _, u, v in h]))
-            rec.log(f"{cam_path}/tails", rr.LineStrips2D(strips, colors=[[90, 200, 255]], radii=0.8))
+            self._log_camera(frame, fo, pipe, cam_path)
         rec.log("plots/tracked_features", rr.Scalars(float(len(fo.track_ids))))
         rec.log("plots/inlier_ratio", rr.Scalars(float(fo.inlier_ratio)))
         rec.log("plots/parallax_px", rr.Scalars(float(fo.parallax_px)))
@@ -135,8 +122,10 @@ class RerunLogger:
             rec.log("world/estimate/base", _transform(T))
             self.est_positions.append(T[:3, 3].copy())
             self.last_logged_position = T[:3, 3].copy()
-            rec.log("world/estimate/keyframes", rr.LineStrips3D([np.asarray(self.est_positions)],
-                                                                colors=[[40, 200, 90]], radii=0.015))
+            if len(self.est_positions) % 10 == 1:
+                # the whole keyframe path, every 10 keyframes (keeps the cost per frame flat)
+                rec.log("world/estimate/keyframes", rr.LineStrips3D([np.asarray(self.est_positions)],
+                                                                    colors=[[40, 200, 90]], radii=0.015))
             win = np.asarray([P[:3, 3] for P in bo.keyframe_poses.values()])
             rec.log("world/window", rr.Points3D(win, colors=[[40, 200, 90]], radii=0.05))
             if len(bo.p_world_landmarks):
@@ -146,6 +135,22 @@ class RerunLogger:
             rec.log("plots/backend_ms", rr.Scalars(float(bo.backend_ms)))
             rec.log("log", rr.TextLog(f"keyframe {fo.frame_index}: {fo.keyframe_reason.value}, gate {fo.gate.value}, "
                                       f"backend {bo.status}"))
+
+    def _log_camera(self, frame: Frame, fo: FrontendOutput, pipe: "Pipeline", cam_path: str) -> None:
+        rec = self.rec
+        rec.log(f"{cam_path}/image", rr.Image(frame.image))
+        rec.log(f"{cam_path}/tracks", rr.Points2D(fo.pixels, colors=age_colors(fo.track_ages), radii=2.0))
+        if len(fo.outlier_pixels):
+            rec.log(f"{cam_path}/outliers", rr.Points2D(fo.outlier_pixels, colors=[[255, 40, 40]], radii=3.0))
+        else:
+            rec.log(f"{cam_path}/outliers", rr.Clear(recursive=False))
+        tail = self.cfg.viz.track_tail
+        if tail > 1 and len(fo.track_ids):
+            # Track tails as arrows from where each track was `tail` frames ago to where it is.
+            start = pipe.frontend.tracker.tail_starts(fo.track_ids, tail)
+            ok = np.all(np.isfinite(start), axis=1)
+            rec.log(f"{cam_path}/tails", rr.Arrows2D(origins=start[ok], vectors=fo.pixels[ok] - start[ok],
+                                                     colors=[[90, 200, 255]], radii=0.6))
 
     def finish(self, pipe: "Pipeline", result: "RunResult", report=None) -> None:
         """Log the final trajectory (one pose per frame), the same as trajectory.txt."""
