@@ -60,3 +60,8 @@ def test_bad_override(tmp_path):
 def test_missing_config_file(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "nope.yaml")
+
+
+def test_example_config_is_valid():
+    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "example.yaml")
+    assert cfg.frontend.tracker is TrackerKind.KLT and cfg.backend.window_keyframes == 20

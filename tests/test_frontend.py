@@ -55,9 +55,6 @@ def test_tracks_follow_ground_truth_after_10_frames(world, tracker_cls):
     assert np.mean(err < 2.0) > 0.9
 
 
-@pytest.mark.xfail(strict=True, reason="known shortfall (issue 3 open): about 2% of keyframe-to-keyframe "
-                   "correspondences drift more than 2 px along the epipolar line on the near floor, where "
-                   "essential-matrix RANSAC cannot see it")
 def test_ransac_survivors_are_almost_all_correct(world):
     """Every keyframe-to-keyframe correspondence that survives RANSAC is checked with ground truth."""
     w, r = world

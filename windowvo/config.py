@@ -55,11 +55,11 @@ class FrontendConfig(_Section):
     grid_rows: int = Field(6, ge=1, le=64)
     min_distance_px: float = Field(12.0, gt=0)
     quality_level: float = Field(0.01, gt=0, lt=1)
-    klt_window_px: int = Field(11, ge=5, le=101)
+    klt_window_px: int = Field(9, ge=5, le=101)
     klt_levels: int = Field(3, ge=0, le=8)
-    forward_backward_px: float = Field(1.0, gt=0)
+    forward_backward_px: float = Field(0.5, gt=0)
     klt_max_residual: float = Field(8.0, gt=0)  # mean abs grey difference of the tracked patch
-    ransac_threshold_px: float = Field(1.0, gt=0)
+    ransac_threshold_px: float = Field(0.5, gt=0)
     ransac_confidence: float = Field(0.999, gt=0.5, lt=1)
     clahe: bool = False
     gain_normalization: bool = True
@@ -109,7 +109,7 @@ class BackendConfig(_Section):
     window_keyframes: int = Field(20, ge=3, le=500)
     max_landmarks: int = Field(150, ge=10, le=5000)
     extra_iterations: int = Field(0, ge=0, le=10)
-    optimizer: Literal["gauss_newton", "dogleg"] = "dogleg"
+    optimizer: Literal["gauss_newton", "dogleg"] = "gauss_newton"
     pixel_sigma: float = Field(1.0, gt=0)
     robust: RobustKind = RobustKind.HUBER
     huber_k: float = Field(1.345, gt=0)

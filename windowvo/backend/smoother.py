@@ -65,11 +65,23 @@ class OdometryStep:
 
 
 def odometry_noise(cfg: BackendConfig, distance: float, yaw: float):
+    """Noise of a wheel-odometry step, as two parts of one between-measurement.
+
+    The planar part (x, y, yaw) is what wheels measure: tight, growing with distance, under
+    the configured robust loss so that vision can overrule slip. The vertical part (z, roll,
+    pitch) only says "the robot drives on its wheels": loose and plain Gaussian, so it keeps
+    linking the window even where vision is briefly lost (a robust loss would let that link go).
+    Each part leaves the other's components free (sigma 1e3), so together they carry the
+    information of one anisotropic factor.
+    """
     o = cfg.odometry
+    free = 1e3
     s_xy = max(o.xy_sigma_min_m, o.xy_sigma_per_m * distance)
     s_yaw = max(o.yaw_sigma_min_rad, o.yaw_sigma_per_m * distance + 0.02 * abs(yaw))
-    sig = np.array([o.roll_pitch_sigma_rad, o.roll_pitch_sigma_rad, s_yaw, s_xy, s_xy, o.z_sigma_m])
-    return robust(gtsam.noiseModel.Diagonal.Sigmas(sig), o.robust, o.robust_k)
+    planar = gtsam.noiseModel.Diagonal.Sigmas(np.array([free, free, s_yaw, s_xy, s_xy, free]))
+    vertical = gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([o.roll_pitch_sigma_rad, o.roll_pitch_sigma_rad, free, free, free, o.z_sigma_m]))
+    return robust(planar, o.robust, o.robust_k), vertical
 
 
 def robust(base, kind: RobustKind, k: float):
@@ -221,8 +233,10 @@ class SlidingWindowBackend:
             return
         if odom is not None and odom.ok and self.use_odometry:
             yaw = float(np.arctan2(odom.T_prev_cur[1, 0], odom.T_prev_cur[0, 0]))
-            graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), gtsam.Pose3(odom.T_prev_cur),
-                                               odometry_noise(cfg, odom.distance_m, yaw)))
+            planar_noise, vertical_noise = odometry_noise(cfg, odom.distance_m, yaw)
+            meas = gtsam.Pose3(odom.T_prev_cur)
+            graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), meas, planar_noise))
+            graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), meas, vertical_noise))
             return
         # Monocular (or odometry missing for this step).
         delta = inv_T(self.kf_pose[k - 1]) @ T_guess

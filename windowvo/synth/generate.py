@@ -95,12 +95,19 @@ def camera_for(spec: SynthSpec) -> CameraModel:
 
 def base_pose(planar: PlanarPath, scene: Scene, t: float, vib_deg: float, seed: int) -> np.ndarray:
     x, y, yaw = (float(a) for a in planar.at(t))
-    z = scene.ground_height(x, y)
-    n = scene.ground_normal(x, y)
     h = np.array([np.cos(yaw), np.sin(yaw), 0.0])
-    xa = h - np.dot(h, n) * n
+    # A rigid robot with a 0.5 m wheelbase: its pitch follows the ground under the front and
+    # rear axles, so crossing the kink at a ramp's foot tilts it gradually, as on a real robot.
+    half_base = 0.25
+    zf = scene.ground_height(x + half_base * h[0], y + half_base * h[1])
+    zr = scene.ground_height(x - half_base * h[0], y - half_base * h[1])
+    z = 0.5 * (zf + zr)
+    xa = np.array([2 * half_base * h[0], 2 * half_base * h[1], zf - zr])
     xa /= np.linalg.norm(xa)
-    ya = np.cross(n, xa)
+    n_side = scene.ground_normal(x, y)
+    ya = np.cross(n_side, xa)
+    ya /= np.linalg.norm(ya)
+    n = np.cross(xa, ya)
     R = np.stack([xa, ya, n], axis=1)
     if vib_deg > 0:
         a = np.deg2rad(vib_deg)
