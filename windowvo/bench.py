@@ -11,6 +11,7 @@ Suites:
 * ``backend``: back-end time per keyframe (median, p95) on feature-level data with a
   20-keyframe window, and resident memory after 500 and after N keyframes.
 * ``rerun``: run time with the Rerun recording on and off.
+* ``memory``: peak RSS of a whole run over 500 frames and over 5,000 frames (rendered once).
 
 Each sequence runs in its own process (``--jobs N`` runs N at once) so peak RSS is per run.
 Numbers are what this machine measured; nothing is enforced here.
@@ -76,6 +77,16 @@ def _acc_row(acc) -> dict:
             "end_drift_pct": acc.end_drift_pct, "path_m": acc.path_length_m}
 
 
+def ensure_rendered(case: SeqCase, cache: Path) -> Path:
+    """Render a synthetic case once into the cache (reused by later runs)."""
+    from .synth.generate import SynthSpec, generate_sequence
+
+    seq_dir = cache / case.name
+    if not (seq_dir / "synth.json").is_file():
+        generate_sequence(seq_dir, SynthSpec(**case.spec))
+    return seq_dir
+
+
 def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) -> dict:
     """One sequence: windowvo and both baselines (runs in a worker process)."""
     import logging
@@ -85,14 +96,9 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) ->
     from .config import config_from_dict
     from .eval.baselines import essential_chaining
     from .eval.metrics import evaluate, plot_trajectories
-    from .synth.generate import SynthSpec, generate_sequence
-
     data: dict = {"progress": False, "viz": {"rerun": "save" if rerun else "off"}}
     if case.kind == "synth":
-        seq_dir = cache / case.name
-        marker = seq_dir / "synth.json"
-        if not marker.is_file():
-            generate_sequence(seq_dir, SynthSpec(**case.spec))
+        seq_dir = ensure_rendered(case, cache)
         data["sequence"] = str(seq_dir)
     else:
         data.update(sequence=str(case.path), dataset="kitti",
@@ -216,6 +222,36 @@ def bench_backend(n_keyframes: int = 5000) -> dict:
             "rss_mb_after": {str(k): v for k, v in rss.items()}, "resets": be.n_resets}
 
 
+def _run_peak_rss(seq_dir: str, out: str, max_frames: int) -> dict:
+    import logging
+
+    logging.basicConfig(level=logging.ERROR)
+    from .app import run_job
+    from .config import config_from_dict
+
+    cfg = config_from_dict({"sequence": seq_dir, "output": out, "progress": False, "viz": {"rerun": "off"},
+                            "max_frames": max_frames})
+    rep = run_job(cfg)
+    return {"frames": rep.result.n_frames, "keyframes": rep.result.n_keyframes, "fps": rep.result.fps,
+            "peak_rss_mb": _peak_rss_mb()}
+
+
+def bench_memory(cache: Path, out_root: Path, long_frames: int = 5000) -> dict:
+    """Peak RSS of a whole pipeline run over 500 frames and over ``long_frames`` frames."""
+    from .synth.generate import SynthSpec, generate_sequence
+    from .synth.paths import PathKind
+
+    d = cache / f"memory_loop_{long_frames}"
+    if not (d / "synth.json").is_file():
+        generate_sequence(d, SynthSpec(path=PathKind.FIGURE_EIGHT, duration_s=(long_frames - 1) / 20.0, seed=44))
+    res = {}
+    for n in (500, long_frames):
+        with ProcessPoolExecutor(max_workers=1) as ex:
+            res[str(n)] = ex.submit(_run_peak_rss, str(d), str(out_root / f"memory_{n}"), n).result()
+    res["growth_pct"] = 100.0 * (res[str(long_frames)]["peak_rss_mb"] / res["500"]["peak_rss_mb"] - 1.0)
+    return res
+
+
 def bench_rerun(cache: Path, out_root: Path) -> dict:
     case = synthetic_cases(30.0)[0]
     res = {}
@@ -230,7 +266,7 @@ def bench_rerun(cache: Path, out_root: Path) -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m windowvo.bench", description=__doc__.splitlines()[0].strip("`"),
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun"])
+    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun", "memory"])
     p.add_argument("--out", default="windowvo_output/bench", help="outputs, JSON and plots")
     p.add_argument("--cache", default="windowvo_output/bench_cache", help="rendered sequences (reused)")
     p.add_argument("--duration", type=float, default=30.0, help="seconds of each synthetic sequence")
@@ -246,6 +282,10 @@ def main(argv=None) -> int:
         cases = synthetic_cases(a.duration) + kitti_cases()
         if a.only:
             cases = [c for c in cases if c.name in a.only]
+        # Render first, in this process, so that each run's peak RSS is the pipeline's own.
+        for c in cases:
+            if c.kind == "synth":
+                ensure_rendered(c, cache)
         with ProcessPoolExecutor(max_workers=max(1, a.jobs), max_tasks_per_child=1) as ex:
             rows = list(ex.map(run_case, cases, [cache] * len(cases), [out] * len(cases)))
         results["sequences"] = rows
@@ -275,6 +315,14 @@ def main(argv=None) -> int:
         for k in ("off", "on"):
             print(f"| {k} | {rr_res[k]['fps']:.1f} | {rr_res[k]['wall_s']:.2f} |")
         print(f"\noverhead: {rr_res['overhead_pct']:.1f}%\n")
+    if "memory" in a.suite:
+        mem = bench_memory(cache, out)
+        results["memory"] = mem
+        print("## Whole-run memory\n\n| frames | keyframes | fps | peak RSS MB |\n|---|---|---|---|")
+        for k, v in mem.items():
+            if isinstance(v, dict):
+                print(f"| {v['frames']} | {v['keyframes']} | {v['fps']:.1f} | {v['peak_rss_mb']:.0f} |")
+        print(f"\ngrowth from 500 frames to the long run: {mem['growth_pct']:.1f}%\n")
     (out / "bench.json").write_text(json.dumps(results, indent=2, default=float))
     print(f"results: {out / 'bench.json'}")
     return 0

@@ -108,6 +108,7 @@ class PlanarPriorConfig(_Section):
 class BackendConfig(_Section):
     window_keyframes: int = Field(20, ge=3, le=500)
     max_landmarks: int = Field(150, ge=10, le=5000)
+    min_landmark_observations: int = Field(3, ge=2, le=20)  # keyframes that must see a track first
     extra_iterations: int = Field(0, ge=0, le=10)
     optimizer: Literal["gauss_newton", "dogleg"] = "gauss_newton"
     pixel_sigma: float = Field(1.0, gt=0)
@@ -119,6 +120,7 @@ class BackendConfig(_Section):
     outlier_residual_px: float = Field(6.0, gt=0)
     use_odometry: bool = True
     relinearize_threshold: float = Field(0.05, gt=0)
+    relinearize_skip: int = Field(1, ge=1, le=100)
     odometry: OdometryNoiseConfig = OdometryNoiseConfig()
     planar_prior: PlanarPriorConfig = PlanarPriorConfig()
 

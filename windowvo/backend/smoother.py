@@ -118,6 +118,7 @@ class SlidingWindowBackend:
         self.body_P_sensor = gtsam.Pose3(camera.T_base_cam)
         self.pixel_noise = robust(gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma), cfg.robust, cfg.huber_k)
         self.lag = float(cfg.window_keyframes - 1)
+        self._cos_min_angle = float(np.cos(np.radians(cfg.min_triangulation_angle_deg)))
         self.k = -1
         self.kf_frame: dict[int, int] = {}
         self.kf_time: dict[int, float] = {}
@@ -134,7 +135,7 @@ class SlidingWindowBackend:
     def _new_smoother(self) -> None:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.cfg.relinearize_threshold)
-        params.relinearizeSkip = 1
+        params.relinearizeSkip = self.cfg.relinearize_skip
         params.findUnusedFactorSlots = False
         if self.cfg.optimizer == "dogleg":
             # Powell's dogleg keeps iSAM2's steps inside a trust region: far landmarks with little
@@ -281,6 +282,12 @@ class SlidingWindowBackend:
         if len(obs) < 2:
             return None
         K = self.camera
+        # Cheap test first: the rays of the first and last observation must already diverge.
+        (k_a, uv_a), (k_b, uv_b) = obs[0], obs[-1]
+        ra = cams[k_a][0] @ np.array([(uv_a[0] - K.cx) / K.fx, (uv_a[1] - K.cy) / K.fy, 1.0])
+        rb = cams[k_b][0] @ np.array([(uv_b[0] - K.cx) / K.fx, (uv_b[1] - K.cy) / K.fy, 1.0])
+        if np.dot(ra, rb) / np.sqrt(np.dot(ra, ra) * np.dot(rb, rb)) > self._cos_min_angle:
+            return None
         uv = np.asarray([o[1] for o in obs])
         R = np.stack([cams[kk][0] for kk, _ in obs])  # (n, 3, 3) R_world_cam
         c = np.stack([cams[kk][1] for kk, _ in obs])  # (n, 3) camera centres
@@ -292,7 +299,7 @@ class SlidingWindowBackend:
         P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
         A = P.sum(axis=0)
         b = np.einsum("nij,nj->i", P, c)
-        if np.linalg.cond(A) > 1e8:
+        if np.linalg.det(A) < 1e-9:
             return None
         p = np.linalg.solve(A, b)
         pc = np.einsum("nji,nj->ni", R, p[None, :] - c)  # R^T (p - c)
@@ -340,7 +347,7 @@ class SlidingWindowBackend:
                     continue
                 lst = self.obs.setdefault(tid, [])
                 lst.append((k, np.asarray(uv, float)))
-                if allow_new and len(lst) >= 2:
+                if allow_new and len(lst) >= self.cfg.min_landmark_observations:
                     candidates.append(tid)
             # New landmarks, longest tracks first, up to the landmark budget of the window.
             budget = self.cfg.max_landmarks - len(self.landmarks)
