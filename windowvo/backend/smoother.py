@@ -136,7 +136,9 @@ class SlidingWindowBackend:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.cfg.relinearize_threshold)
         params.relinearizeSkip = self.cfg.relinearize_skip
-        params.findUnusedFactorSlots = False
+        # Reuse the slots of removed and marginalised factors: otherwise the factor list grows by
+        # every factor ever added, and memory and update time with it.
+        params.findUnusedFactorSlots = True
         if self.cfg.optimizer == "dogleg":
             # Powell's dogleg keeps iSAM2's steps inside a trust region: far landmarks with little
             # parallax make plain Gauss-Newton overshoot.
