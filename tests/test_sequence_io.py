@@ -133,3 +133,25 @@ def test_featureless_sequence_is_a_clear_error(seq, tmp_path):
     assert r.returncode == 2, r.stderr
     assert "no trackable features" in r.stderr and "Traceback" not in r.stderr
     assert (tmp_path / "out" / "stats.csv").is_file()
+
+
+def test_synth_and_eval_command_lines(tmp_path):
+    out = tmp_path / "synth"
+    r = subprocess.run([sys.executable, "-m", "windowvo.synth", str(out), "--path", "straight", "--duration", "1.0",
+                        "--obstacles", "2", "--black-frames", "3"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    s = load_native(out)
+    assert len(s) == 21 and s.odometry.synthetic and len(s.groundtruth) == 21
+    import cv2
+
+    assert cv2.imread(str(s.image_paths[3]), cv2.IMREAD_GRAYSCALE).max() == 0  # the black frame
+    e = subprocess.run([sys.executable, "-m", "windowvo.eval", str(out / "groundtruth.txt"), str(out / "groundtruth.txt"),
+                        "--json"], capture_output=True, text=True, timeout=300)
+    assert e.returncode == 0, e.stderr
+    import json
+
+    rep = json.loads(e.stdout)
+    assert rep["ate_se3_rmse_m"] < 1e-6 and rep["n_poses"] == 21
+    bad = subprocess.run([sys.executable, "-m", "windowvo.eval", str(out / "nope.txt"), str(out / "groundtruth.txt")],
+                         capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr

@@ -20,19 +20,15 @@ import numpy as np
 
 from .backend.smoother import OdometryStep, SlidingWindowBackend
 from .config import Config, save_config
-from .errors import SequenceError, WindowVOError
+from .errors import SequenceError
 from .frontend.frontend import Frontend
 from .geometry import interpolate_T, inv_T
 from .io.provider import DataProvider, SkippedFrame
 from .io.sequence import Sequence
 from .io.trajectory import Trajectory, write_tum
-from .types import BackendOutput, FrameRecord, FrontendOutput
+from .types import BackendOutput, BackendStatus, FrameRecord, FrontendOutput
 
 log = logging.getLogger(__name__)
-
-
-class RunInterrupted(WindowVOError):
-    """Raised inside the loop on SIGTERM so the run ends like on Ctrl-C."""
 
 
 @dataclass
@@ -132,7 +128,7 @@ class Pipeline:
                     self.progress(len(self.frames), len(self.kf_frames))
                 if stop["signal"] is not None:
                     break
-        except (KeyboardInterrupt, RunInterrupted):
+        except KeyboardInterrupt:
             interrupted = True
         finally:
             for sig, handler in previous.items():
@@ -179,7 +175,7 @@ class Pipeline:
             self.kf_frames.append(frame.index)
             self.kf_times.append(frame.timestamp)
             self.last_kf_time = frame.timestamp
-            if bo.status == "recovered":
+            if bo.status is BackendStatus.RECOVERED:
                 note = (note + "; " if note else "") + "backend reset"
         # The frame counts as processed only once everything about it is known (an interrupt
         # in the middle leaves frames and records in step).
@@ -203,7 +199,7 @@ class Pipeline:
             is_keyframe=fo.is_keyframe,
             keyframe_reason=fo.keyframe_reason.value,
             gate=fo.gate.value if fo.is_keyframe or fo.frame_index == 0 else "",
-            backend_status=bo.status if bo is not None else "",
+            backend_status=bo.status.value if bo is not None else "",
             n_landmarks=bo.n_landmarks if bo is not None else 0,
             reprojection_rms_px=round(bo.reprojection_rms_px, 4) if bo is not None else float("nan"),
             frontend_ms=round(fo.frontend_ms, 3),

@@ -74,6 +74,15 @@ class FrontendOutput:
     standstill: bool = False
 
 
+class BackendStatus(str, enum.Enum):
+    """How the back end handled a keyframe."""
+
+    OK = "ok"
+    INIT = "init"  # the first keyframe, fixed by a prior
+    ODOMETRY_FALLBACK = "odometry_fallback"  # gates failed: this keyframe rests on wheel odometry
+    RECOVERED = "recovered"  # the smoother failed; window restarted from the last good pose
+
+
 @dataclass
 class BackendOutput:
     """State of the window after processing one keyframe."""
@@ -89,7 +98,7 @@ class BackendOutput:
     n_vision_factors: int = 0
     reprojection_rms_px: float = float("nan")
     backend_ms: float = 0.0
-    status: str = "ok"  # ok | odometry_fallback | recovered | init
+    status: BackendStatus = BackendStatus.OK
 
 
 @dataclass

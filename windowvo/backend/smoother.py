@@ -34,7 +34,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import BackendConfig, RobustKind
 from ..geometry import inv_T
-from ..types import BackendOutput, FrontendOutput, GateOutcome
+from ..types import BackendOutput, BackendStatus, FrontendOutput, GateOutcome
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +160,7 @@ class SlidingWindowBackend:
         k = self.k
         self.kf_frame[k] = fo.frame_index
         self.kf_time[k] = fo.timestamp
-        status = "ok"
+        status = BackendStatus.OK
         use_vision = fo.vision_ok
         # New landmarks need a vision-worthy keyframe; each one is still checked for its own
         # triangulation angle, so low overall parallax (distant scenes) does not block it.
@@ -169,16 +169,16 @@ class SlidingWindowBackend:
         try:
             n_new, n_vis = self._update(fo, odom, T_guess, use_vision, allow_new)
             if k == 0:
-                status = "init"
+                status = BackendStatus.INIT
             elif not use_vision:
-                status = "odometry_fallback"
+                status = BackendStatus.ODOMETRY_FALLBACK
         except RuntimeError as err:
             msg = " ".join(str(err).split())[:300]
             log.warning("keyframe %d (frame %d): smoother failed (%s); resetting the window from the last good pose",
                         k, fo.frame_index, msg)
             self._reset_with(fo, odom, T_guess)
             n_new, n_vis = 0, 0
-            status = "recovered"
+            status = BackendStatus.RECOVERED
         out = self._output(fo, n_new, n_vis, status)
         out.backend_ms = (time.perf_counter() - t0) * 1000.0
         return out
@@ -484,7 +484,7 @@ class SlidingWindowBackend:
             self.obs[tid] = [(k, np.asarray(uv, float))]
         self.dead.difference_update(fo.track_ids.tolist())
 
-    def _output(self, fo: FrontendOutput, n_new: int, n_vis: int, status: str) -> BackendOutput:
+    def _output(self, fo: FrontendOutput, n_new: int, n_vis: int, status: BackendStatus) -> BackendOutput:
         est = self.estimate
         ids, pts = [], []
         for tid, lm in self.landmarks.items():

@@ -134,7 +134,7 @@ class RerunLogger:
                 rec.log("plots/reprojection_rms_px", rr.Scalars(float(bo.reprojection_rms_px)))
             rec.log("plots/backend_ms", rr.Scalars(float(bo.backend_ms)))
             rec.log("log", rr.TextLog(f"keyframe {fo.frame_index}: {fo.keyframe_reason.value}, gate {fo.gate.value}, "
-                                      f"backend {bo.status}"))
+                                      f"backend {bo.status.value}"))
 
     def _log_camera(self, frame: Frame, fo: FrontendOutput, pipe: "Pipeline", cam_path: str) -> None:
         rec = self.rec
