@@ -1,0 +1,1 @@
+"""Front end: feature tracking with persistent ids, outlier rejection, keyframes, quality gates."""
