@@ -8,7 +8,7 @@ from windowvo.backend.smoother import X, OdometryStep, SlidingWindowBackend
 from windowvo.camera import CameraModel
 from windowvo.config import BackendConfig
 from windowvo.eval.metrics import evaluate
-from windowvo.geometry import R_to_rpy, inv_T, make_T, rpy_to_R
+from windowvo.geometry import R_to_rpy, make_T, rpy_to_R
 from windowvo.io.trajectory import Trajectory
 from windowvo.synth.features import simulate_features
 from windowvo.synth.generate import SynthSpec, WheelErrorModel, build_world, simulate_wheel_odometry

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from conftest import SHARED_DATA, make_config
-from windowvo.app import run_job, wheel_only_trajectory
+from windowvo.app import run_job
 from windowvo.config import config_from_dict
 from windowvo.errors import CalibrationError, SequenceError
 from windowvo.eval.baselines import essential_chaining
 from windowvo.eval.metrics import evaluate
-from windowvo.geometry import inv_T, make_T, quat_from_R, rpy_to_R
+from windowvo.geometry import make_T, quat_from_R, rpy_to_R
 from windowvo.io import datasets
 from windowvo.io.sequence import load_native
 

@@ -1,12 +1,10 @@
 """End-to-end regression on rendered sequences: front end + back end against ground truth."""
 
-import os
 import signal
 import subprocess
 import sys
 import time
 
-import numpy as np
 import pytest
 
 from conftest import make_config

@@ -42,9 +42,7 @@ def wheel_only_trajectory(seq: Sequence, timestamps: np.ndarray) -> Optional[Tra
     odo = seq.odometry
     if odo is None or len(timestamps) == 0:
         return None
-    T0 = odo.pose_at(float(timestamps[0]))
     poses = np.stack([odo.delta(float(timestamps[0]), float(t)) for t in timestamps])
-    del T0
     return Trajectory(np.asarray(timestamps, float), poses)
 
 

@@ -256,7 +256,6 @@ def bench_rerun(cache: Path, out_root: Path) -> dict:
     case = synthetic_cases(30.0)[0]
     res = {}
     for on in (False, True):
-        t0 = time.perf_counter()
         row = run_case(case, cache, out_root / ("rerun_on" if on else "rerun_off"), rerun=on)
         res["on" if on else "off"] = {"fps": row["fps"], "wall_s": row["frames"] / row["fps"]}
     res["overhead_pct"] = 100.0 * (res["on"]["wall_s"] / res["off"]["wall_s"] - 1.0)

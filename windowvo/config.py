@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Literal, Optional
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -204,15 +204,7 @@ class Config(_Section):
         return self
 
     def to_yaml_dict(self) -> dict:
-        return _plain(self.model_dump(mode="json"))
-
-
-def _plain(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {k: _plain(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_plain(v) for v in obj]
-    return obj
+        return self.model_dump(mode="json")
 
 
 def _format_validation_error(err: ValidationError) -> str:

@@ -22,7 +22,7 @@ from .backend.smoother import OdometryStep, SlidingWindowBackend
 from .config import Config, save_config
 from .errors import SequenceError
 from .frontend.frontend import Frontend
-from .geometry import interpolate_T, inv_T
+from .geometry import interpolate_T
 from .io.provider import DataProvider, SkippedFrame
 from .io.sequence import Sequence
 from .io.trajectory import Trajectory, write_tum
@@ -188,7 +188,7 @@ class Pipeline:
         return FrameRecord(
             frame_index=fo.frame_index,
             timestamp=fo.timestamp,
-            n_tracked=len(fo.track_ids),
+            n_tracked=len(fo.track_ids) + len(fo.outlier_pixels),
             n_inliers=len(fo.track_ids),
             n_detected=fo.n_detected,
             parallax_px=round(fo.parallax_px, 3),

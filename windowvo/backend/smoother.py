@@ -93,19 +93,6 @@ def robust(base, kind: RobustKind, k: float):
     return base
 
 
-def triangulate_midpoint(origins: np.ndarray, dirs: np.ndarray) -> Optional[np.ndarray]:
-    """Least-squares point closest to the rays ``origins[i] + s * dirs[i]`` (dirs unit)."""
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
-    for o, d in zip(origins, dirs):
-        P = np.eye(3) - np.outer(d, d)
-        A += P
-        b += P @ o
-    if np.linalg.cond(A) > 1e8:
-        return None
-    return np.linalg.solve(A, b)
-
-
 class SlidingWindowBackend:
     """Fixed-lag smoother fed one keyframe at a time."""
 

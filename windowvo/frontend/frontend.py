@@ -193,14 +193,16 @@ class Frontend:
         )
         if two_view is not None:
             out.inlier_ratio = float(two_view.inlier_mask.mean())
-        if self._is_keyframe_candidate(out, n_common, odom_motion, force_keyframe) and two_view is not None:
+        reason = (KeyframeReason.FIRST if self.kf_ids is None
+                  else self._keyframe_reason(out, n_common, odom_motion, force_keyframe))
+        if reason not in (KeyframeReason.NONE, KeyframeReason.FIRST) and two_view is not None:
             # Pose recovery (cheirality, rotation-compensated parallax) only where the gates need it.
             recover_relative_pose(two_view, kf_pair[0], kf_pair[1], self.focal)
             out.cheirality_ratio = two_view.cheirality_ratio
             out.rot_comp_parallax_px = two_view.rot_comp_parallax_px
             out.R_cam_kf_cam = two_view.R_cur_kf
             out.t_dir_kf = two_view.t_cur_kf
-        self._decide_keyframe(out, n_common, odom_motion, force_keyframe)
+        self._decide_keyframe(out, reason)
         if out.is_keyframe:
             self.kf_ids = out.track_ids.copy()
             self.kf_xn = xn.copy()
@@ -230,21 +232,16 @@ class Frontend:
             return KeyframeReason.INTERVAL
         return KeyframeReason.NONE
 
-    def _is_keyframe_candidate(self, out, n_common, odom_motion, force) -> bool:
-        return self.kf_ids is not None and self._keyframe_reason(out, n_common, odom_motion, force) is not KeyframeReason.NONE
-
-    def _decide_keyframe(
-        self, out: FrontendOutput, n_common: int, odom_motion: Optional[tuple[float, float]], force: bool
-    ) -> None:
+    def _decide_keyframe(self, out: FrontendOutput, reason: KeyframeReason) -> None:
+        """Mark the frame a keyframe for ``reason`` and run the quality gates on it."""
         gc = self.gate_cfg
-        if self.kf_ids is None:
+        if reason is KeyframeReason.FIRST:
             if len(out.track_ids) >= gc.min_features:
                 out.is_keyframe, out.keyframe_reason = True, KeyframeReason.FIRST
                 out.gate = GateOutcome.PASS
             else:
                 out.gate = GateOutcome.FEW_FEATURES
             return
-        reason = self._keyframe_reason(out, n_common, odom_motion, force)
         if reason is KeyframeReason.NONE:
             return
         out.is_keyframe, out.keyframe_reason = True, reason

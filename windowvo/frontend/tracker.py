@@ -6,7 +6,7 @@ persistent id, and keep each live track's full pixel history.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional, Protocol
 
 import cv2

@@ -43,7 +43,6 @@ class DataProvider:
         self.mask_folder = mask_folder
         dts = np.diff(seq.timestamps[: self.n])
         self.nominal_dt = float(np.median(dts)) if len(dts) else 0.0
-        self._prev_small: Optional[np.ndarray] = None
         self._prev_img: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
@@ -78,11 +77,8 @@ class DataProvider:
             if float(img.mean()) < self.checks.black_frame_mean:
                 yield SkippedFrame(i, t, f"frame {i}: black frame (mean {img.mean():.1f})")
                 continue
-            small = cv2.resize(img, (80, 60), interpolation=cv2.INTER_AREA).astype(np.float32)
-            if self._prev_small is not None and float(np.max(np.abs(small - self._prev_small))) == 0.0:
-                if np.array_equal(img, self._prev_img):
-                    yield SkippedFrame(i, t, f"frame {i}: exact duplicate of the previous frame")
-                    continue
-            self._prev_small = small
+            if self._prev_img is not None and np.array_equal(img, self._prev_img):
+                yield SkippedFrame(i, t, f"frame {i}: exact duplicate of the previous frame")
+                continue
             self._prev_img = img
             yield Frame(i, t, img, self._mask(i))

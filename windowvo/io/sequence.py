@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -57,10 +57,6 @@ class Sequence:
                 f"{self.camera.width}x{self.camera.height}"
             )
         return img
-
-    def indices(self, max_frames: Optional[int] = None) -> Iterator[int]:
-        n = len(self) if max_frames is None else min(len(self), max_frames)
-        return iter(range(n))
 
 
 def list_images(folder: Path) -> list[Path]:

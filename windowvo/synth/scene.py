@@ -252,7 +252,6 @@ def raycast(planes: list[Plane], origin: np.ndarray, dirs: np.ndarray, near: flo
     Returns ``t`` (inf where nothing is hit), the plane index, and the plane coordinates (u, v).
     ``dirs`` need not be unit vectors; ``t`` is in units of ``dirs``.
     """
-    P = len(planes)
     N = dirs.shape[0]
     dirs32 = dirs.astype(np.float32, copy=False)
     normals = np.stack([p.normal for p in planes]).astype(np.float32)
