@@ -4,7 +4,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from windowvo.backend.smoother import X, OdometryStep, SlidingWindowBackend
+from windowvo.backend.smoother import OdometryStep, SlidingWindowBackend, X
 from windowvo.camera import CameraModel
 from windowvo.config import BackendConfig
 from windowvo.eval.metrics import evaluate
@@ -47,7 +47,7 @@ def test_feature_level_accuracy_beats_wheels(long_features):
     assert wheel.ate_se3_rmse_m >= 5.0 * rep.ate_se3_rmse_m, (wheel, rep)
     assert be.n_resets == 0
     # bounded window: only the last window_keyframes poses remain in the smoother
-    keys = [gtsam.Symbol(k) for k in be.smoother.timestamps().keys()]
+    keys = [gtsam.Symbol(k) for k in be.smoother.timestamps()]
     n_poses = sum(1 for s in keys if chr(s.chr()) == "x")
     assert n_poses == BackendConfig().window_keyframes
     assert len(keys) - n_poses < 1500

@@ -5,8 +5,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from conftest import SHARED_DATA, make_config
+
 from windowvo.app import run_job
 from windowvo.config import config_from_dict
 from windowvo.errors import CalibrationError, SequenceError

@@ -46,7 +46,7 @@ def test_tracks_follow_ground_truth_after_10_frames(world, tracker_cls):
         ts = tr.track(img)
     common, a, b = np.intersect1d(ids0, ts.ids, return_indices=True)
     assert len(common) > 100
-    uv_gt, z = project(cam, T, p_world[a])
+    uv_gt, _z = project(cam, T, p_world[a])
     # drop points that became occluded (the ray-cast from the new pose hits something else)
     p_check = r.surface_points(T, uv_gt, 3.5)
     visible = np.linalg.norm(p_check - p_world[a], axis=1) < 0.05
@@ -72,7 +72,7 @@ def test_ransac_survivors_are_almost_all_correct(world):
             sel = [j for j, tid in enumerate(fo.track_ids) if int(tid) in prev]
             P = np.stack([prev[int(fo.track_ids[j])] for j in sel])
             ok = np.all(np.isfinite(P), axis=1)
-            uv, z = project(cam, T, P[ok])
+            uv, _z = project(cam, T, P[ok])
             err = np.linalg.norm(uv - fo.pixels[sel][ok], axis=1)
             wrong += int((err > 2.0).sum())
             total += int(ok.sum())
@@ -83,7 +83,7 @@ def test_ransac_survivors_are_almost_all_correct(world):
 
 
 def test_relative_pose_from_rendered_pair(world):
-    w, r = world
+    w, _r = world
     cam = w.camera
     tr = KLTTracker(FrontendConfig(max_features=300))
     img0, T0 = render(world, 2.0)
@@ -91,7 +91,7 @@ def test_relative_pose_from_rendered_pair(world):
     for i in range(1, 16):
         img, T1 = render(world, 2.0 + i / 20.0)
         s1 = tr.track(img)
-    common, a, b = np.intersect1d(s0.ids, s1.ids, return_indices=True)
+    _common, a, b = np.intersect1d(s0.ids, s1.ids, return_indices=True)
     res = two_view_geometry(cam.undistort_normalized(s0.pixels[a]), cam.undistort_normalized(s1.pixels[b]),
                             cam.fx, 0.5, 0.999)
     T_c1_c0 = inv_T(T1) @ T0

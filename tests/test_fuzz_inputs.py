@@ -24,7 +24,7 @@ SECTION_KEYS = ["max_features", "tracker", "window_keyframes", "pixel_sigma", "r
 
 
 @FUZZ
-@given(st.dictionaries(st.sampled_from(CONFIG_KEYS + ["bogus"]),
+@given(st.dictionaries(st.sampled_from([*CONFIG_KEYS, "bogus"]),
                        st.one_of(values, st.dictionaries(st.sampled_from(SECTION_KEYS), values, max_size=4)),
                        max_size=6))
 def test_config_fuzz(data):

@@ -6,8 +6,8 @@ import sys
 import time
 
 import pytest
-
 from conftest import make_config
+
 from windowvo.app import run_job
 from windowvo.io.trajectory import read_tum
 from windowvo.synth.paths import PathKind
@@ -72,7 +72,7 @@ def test_interruption_keeps_results(seq_factory, tmp_path, sig):
             break
         time.sleep(0.05)
     p.send_signal(sig)
-    out, err = p.communicate(timeout=120)
+    _out, err = p.communicate(timeout=120)
     if p.returncode == 0:
         pytest.skip("the run finished before the signal arrived")
     assert p.returncode == 130, err

@@ -1,9 +1,9 @@
 """The .rrd recording of a run, read back through Rerun's Python API (never the CLI)."""
 
 import numpy as np
+from conftest import make_config
 from rerun.chunk import RrdReader
 
-from conftest import make_config
 from windowvo.app import run_job
 from windowvo.io.trajectory import read_tum
 

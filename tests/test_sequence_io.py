@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from windowvo.errors import CalibrationError, SequenceError
+from windowvo.geometry import make_T, rpy_to_R
 from windowvo.io.odometry import read_odometry_csv
 from windowvo.io.sequence import load_native
 from windowvo.io.trajectory import read_tum, write_tum
-from windowvo.geometry import make_T, rpy_to_R
 
 
 @pytest.fixture

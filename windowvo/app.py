@@ -6,11 +6,11 @@ The command line (``run.py``) and the benchmark call :func:`run_and_report`; tes
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import sys
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 
@@ -27,8 +27,8 @@ log = logging.getLogger("windowvo")
 class JobReport:
     result: RunResult
     sequence: Sequence
-    accuracy: Optional[object] = None  # AccuracyReport
-    wheel_accuracy: Optional[object] = None
+    accuracy: object | None = None  # AccuracyReport
+    wheel_accuracy: object | None = None
 
 
 def load_sequence(cfg: Config) -> Sequence:
@@ -37,7 +37,7 @@ def load_sequence(cfg: Config) -> Sequence:
     return datasets.load(cfg)
 
 
-def wheel_only_trajectory(seq: Sequence, timestamps: np.ndarray) -> Optional[Trajectory]:
+def wheel_only_trajectory(seq: Sequence, timestamps: np.ndarray) -> Trajectory | None:
     """Wheel odometry alone at the given times, anchored at the first one (world = first base)."""
     odo = seq.odometry
     if odo is None or len(timestamps) == 0:
@@ -118,10 +118,8 @@ def _progress_bar(cfg: Config, total: int):
 
 def run_and_report(cfg: Config) -> RunResult:
     seq_len_hint = None
-    try:
+    with contextlib.suppress(OSError):
         seq_len_hint = len(list((cfg.sequence / "images").iterdir())) if (cfg.sequence / "images").is_dir() else None
-    except OSError:
-        pass
     total = min(seq_len_hint or 0, cfg.max_frames or 10**9) or None
     bar, update = _progress_bar(cfg, total or 0)
     try:

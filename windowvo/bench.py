@@ -28,7 +28,6 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -39,8 +38,8 @@ SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 class SeqCase:
     name: str
     kind: str  # synth | kitti
-    spec: Optional[dict] = None
-    path: Optional[Path] = None
+    spec: dict | None = None
+    path: Path | None = None
 
 
 def synthetic_cases(duration: float) -> list[SeqCase]:
@@ -318,7 +317,7 @@ def main(argv=None) -> int:
         mem = bench_memory(cache, out)
         results["memory"] = mem
         print("## Whole-run memory\n\n| frames | keyframes | fps | peak RSS MB |\n|---|---|---|---|")
-        for k, v in mem.items():
+        for v in mem.values():
             if isinstance(v, dict):
                 print(f"| {v['frames']} | {v['keyframes']} | {v['fps']:.1f} | {v['peak_rss_mb']:.0f} |")
         print(f"\ngrowth from 500 frames to the long run: {mem['growth_pct']:.1f}%\n")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -63,8 +63,8 @@ class FrontendConfig(_Section):
     ransac_confidence: float = Field(0.999, gt=0.5, lt=1)
     clahe: bool = False
     gain_normalization: bool = True
-    mask: Optional[Path] = None
-    mask_folder: Optional[Path] = None
+    mask: Path | None = None
+    mask_folder: Path | None = None
     border_px: int = Field(8, ge=0)
 
 
@@ -149,7 +149,7 @@ class CameraConfig(_Section):
     cy: float = Field(ge=0)
     distortion_model: str = "none"
     distortion: list[float] = []
-    T_base_cam: Optional[list[float]] = None  # 16 numbers, row major; default: camera looking forward
+    T_base_cam: list[float] | None = None  # 16 numbers, row major; default: camera looking forward
 
     @field_validator("T_base_cam")
     @classmethod
@@ -186,9 +186,9 @@ class Config(_Section):
     output: Path
     dataset: DatasetKind = DatasetKind.NATIVE
     fps: float = Field(20.0, gt=0)
-    max_frames: Optional[int] = Field(None, gt=1)
+    max_frames: int | None = Field(None, gt=1)
     progress: bool = True
-    camera: Optional[CameraConfig] = None
+    camera: CameraConfig | None = None
     odometry_synthesis: OdometrySynthesisConfig = OdometrySynthesisConfig()
     frontend: FrontendConfig = FrontendConfig()
     keyframes: KeyframeConfig = KeyframeConfig()
@@ -198,7 +198,7 @@ class Config(_Section):
     checks: InputChecksConfig = InputChecksConfig()
 
     @model_validator(mode="after")
-    def _check(self) -> "Config":
+    def _check(self) -> Config:
         if self.gates.min_parallax_px > self.keyframes.min_parallax_px:
             raise ValueError("gates.min_parallax_px must not exceed keyframes.min_parallax_px")
         return self
@@ -246,7 +246,7 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
     return data
 
 
-def config_from_dict(data: dict, base_dir: Optional[Path] = None) -> Config:
+def config_from_dict(data: dict, base_dir: Path | None = None) -> Config:
     """Validate a config mapping; relative paths are resolved against ``base_dir``."""
     if not isinstance(data, dict):
         raise ConfigError("invalid config: the top level must be a mapping of keys to values")
@@ -257,7 +257,7 @@ def config_from_dict(data: dict, base_dir: Optional[Path] = None) -> Config:
     if base_dir is not None:
         base_dir = Path(base_dir)
 
-        def fix(p: Optional[Path]) -> Optional[Path]:
+        def fix(p: Path | None) -> Path | None:
             if p is None:
                 return None
             p = Path(p).expanduser()
@@ -270,7 +270,7 @@ def config_from_dict(data: dict, base_dir: Optional[Path] = None) -> Config:
     return cfg
 
 
-def load_config(path: Path | str, overrides: Optional[list[str]] = None) -> Config:
+def load_config(path: Path | str, overrides: list[str] | None = None) -> Config:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file not found: {path}")

@@ -6,14 +6,15 @@ the trajectory of every frame processed so far, ``stats.csv`` and the recording 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import logging
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Optional
 
 import cv2
 import numpy as np
@@ -51,7 +52,7 @@ class RunResult:
         return self.n_frames / self.wall_s if self.wall_s > 0 else 0.0
 
 
-def load_static_mask(path: Optional[Path], shape: tuple[int, int]) -> Optional[np.ndarray]:
+def load_static_mask(path: Path | None, shape: tuple[int, int]) -> np.ndarray | None:
     if path is None:
         return None
     m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
@@ -63,7 +64,7 @@ def load_static_mask(path: Optional[Path], shape: tuple[int, int]) -> Optional[n
 
 
 class Pipeline:
-    def __init__(self, cfg: Config, seq: Sequence, viewer=None, progress: Optional[Callable] = None):
+    def __init__(self, cfg: Config, seq: Sequence, viewer=None, progress: Callable | None = None):
         self.cfg = cfg
         self.seq = seq
         self.viewer = viewer
@@ -79,18 +80,18 @@ class Pipeline:
         self.kf_frames: list[int] = []
         self.kf_times: list[float] = []
         self.records: list[FrameRecord] = []
-        self.last_kf_time: Optional[float] = None
+        self.last_kf_time: float | None = None
         self.notes: list[str] = []
 
     # ------------------------------------------------------------------ odometry helpers
-    def _odom_since_kf(self, t: float) -> Optional[tuple[float, float]]:
+    def _odom_since_kf(self, t: float) -> tuple[float, float] | None:
         odo = self.seq.odometry
         if odo is None or self.last_kf_time is None:
             return None
         d = odo.delta(self.last_kf_time, t)
         return float(np.hypot(d[0, 3], d[1, 3])), abs(float(np.arctan2(d[1, 0], d[0, 0])))
 
-    def _odom_step(self, t0: float, t1: float) -> Optional[OdometryStep]:
+    def _odom_step(self, t0: float, t1: float) -> OdometryStep | None:
         odo = self.seq.odometry
         if odo is None or not self.use_odometry:
             return None
@@ -115,10 +116,9 @@ class Pipeline:
 
         previous = {}
         for sig in (signal.SIGTERM, signal.SIGINT):
-            try:
+            # Not in the main thread: no handlers, Ctrl-C raises as usual.
+            with contextlib.suppress(ValueError):
                 previous[sig] = signal.signal(sig, on_signal)
-            except ValueError:  # not in the main thread: no handlers, Ctrl-C raises as usual
-                pass
         n_total = len(self.provider)
         interrupted = False
         try:
@@ -163,7 +163,7 @@ class Pipeline:
             return
         frame = item
         fo = self.frontend.process(frame, self._odom_since_kf(frame.timestamp), force_keyframe=is_last)
-        bo: Optional[BackendOutput] = None
+        bo: BackendOutput | None = None
         note = ""
         if fo.is_keyframe:
             odom = None
@@ -184,7 +184,7 @@ class Pipeline:
         if self.viewer is not None:
             self.viewer.log_frame(frame, fo, bo, self)
 
-    def _record(self, fo: FrontendOutput, bo: Optional[BackendOutput], note: str) -> FrameRecord:
+    def _record(self, fo: FrontendOutput, bo: BackendOutput | None, note: str) -> FrameRecord:
         return FrameRecord(
             frame_index=fo.frame_index,
             timestamp=fo.timestamp,
@@ -208,7 +208,7 @@ class Pipeline:
         )
 
     # ------------------------------------------------------------------ outputs
-    def keyframe_pose(self, frame_index: int) -> Optional[np.ndarray]:
+    def keyframe_pose(self, frame_index: int) -> np.ndarray | None:
         try:
             k = self.kf_frames.index(frame_index)
         except ValueError:

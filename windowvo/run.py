@@ -12,7 +12,6 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import Optional
 
 from .config import Config, ConfigError, apply_overrides, config_from_dict, load_config
 from .errors import WindowVOError
@@ -69,7 +68,7 @@ def default_config(overrides: list[str]) -> Config:
     return config_from_dict(data, base_dir=Path.cwd())
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     level = logging.DEBUG if args.verbose else (logging.WARNING if args.quiet else logging.INFO)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
-from typing import Optional
 
 import numpy as np
 
@@ -19,7 +18,7 @@ class Frame:
     index: int
     timestamp: float
     image: np.ndarray  # uint8 grayscale, H x W
-    mask: Optional[np.ndarray] = None  # uint8, 0 where features are forbidden
+    mask: np.ndarray | None = None  # uint8, 0 where features are forbidden
 
 
 class GateOutcome(str, enum.Enum):
@@ -67,8 +66,8 @@ class FrontendOutput:
     inlier_ratio: float = 1.0
     cheirality_ratio: float = 1.0
     spread: float = 0.0
-    R_cam_kf_cam: Optional[np.ndarray] = None  # relative rotation last keyframe -> now (camera)
-    t_dir_kf: Optional[np.ndarray] = None  # unit translation direction (camera frame of last kf)
+    R_cam_kf_cam: np.ndarray | None = None  # relative rotation last keyframe -> now (camera)
+    t_dir_kf: np.ndarray | None = None  # unit translation direction (camera frame of last kf)
     n_detected: int = 0
     frontend_ms: float = 0.0
     standstill: bool = False

@@ -25,7 +25,6 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Optional
 
 import cv2
 import gtsam
@@ -114,7 +113,7 @@ class SlidingWindowBackend:
         self.landmarks: dict[int, LandmarkState] = {}
         self.dead: set[int] = set()
         self.pending_removal: list[int] = []
-        self.estimate: Optional[gtsam.Values] = None
+        self.estimate: gtsam.Values | None = None
         self.n_resets = 0
         self._new_smoother()
 
@@ -132,7 +131,7 @@ class SlidingWindowBackend:
             params.setOptimizationParams(gtsam.ISAM2DoglegParams())
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, params)
 
-    def window_start(self, k: Optional[int] = None) -> int:
+    def window_start(self, k: int | None = None) -> int:
         """Oldest keyframe index still (and after this update, still) in the window."""
         k = self.k if k is None else k
         return max(0, k - (self.cfg.window_keyframes - 1))
@@ -141,7 +140,7 @@ class SlidingWindowBackend:
         return self.kf_pose[k]
 
     # ------------------------------------------------------------------ main entry
-    def add_keyframe(self, fo: FrontendOutput, odom: Optional[OdometryStep]) -> BackendOutput:
+    def add_keyframe(self, fo: FrontendOutput, odom: OdometryStep | None) -> BackendOutput:
         t0 = time.perf_counter()
         self.k += 1
         k = self.k
@@ -171,7 +170,7 @@ class SlidingWindowBackend:
         return out
 
     # ------------------------------------------------------------------ pieces
-    def _initial_guess(self, fo: FrontendOutput, odom: Optional[OdometryStep]) -> np.ndarray:
+    def _initial_guess(self, fo: FrontendOutput, odom: OdometryStep | None) -> np.ndarray:
         k = self.k
         if k == 0:
             return np.eye(4)
@@ -193,7 +192,7 @@ class SlidingWindowBackend:
             return T_prev @ d
         return T_prev.copy()
 
-    def _pnp(self, fo: FrontendOutput) -> Optional[np.ndarray]:
+    def _pnp(self, fo: FrontendOutput) -> np.ndarray | None:
         if self.estimate is None:
             return None
         pts3, pts2 = [], []
@@ -216,7 +215,7 @@ class SlidingWindowBackend:
         T_cam_world[:3, 3] = tvec.ravel()
         return inv_T(T_cam_world) @ inv_T(self.T_base_cam)
 
-    def _motion_factors(self, graph, k: int, odom: Optional[OdometryStep], fo: FrontendOutput, T_guess) -> None:
+    def _motion_factors(self, graph, k: int, odom: OdometryStep | None, fo: FrontendOutput, T_guess) -> None:
         cfg = self.cfg
         if k == 0:
             graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-4)))
@@ -249,7 +248,7 @@ class SlidingWindowBackend:
         if pp.height_prior:
             sig = np.array([1e3, 1e3, 1e3, 1e3, 1e3, pp.height_sigma_m])
             R = T_guess[:3, :3]
-            graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(gtsam.Rot3(R), np.array([0.0, 0.0, 0.0]) + [T_guess[0, 3], T_guess[1, 3], 0.0]),
+            graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(gtsam.Rot3(R), np.array([T_guess[0, 3], T_guess[1, 3], 0.0])),
                                              gtsam.noiseModel.Diagonal.Sigmas(sig)))
 
     def _proj(self, uv: np.ndarray, k: int, key: int):
@@ -264,7 +263,7 @@ class SlidingWindowBackend:
             out[kk] = (T_wc[:3, :3], T_wc[:3, 3])
         return out
 
-    def _try_triangulate(self, tid: int, cams: dict[int, tuple[np.ndarray, np.ndarray]]) -> Optional[np.ndarray]:
+    def _try_triangulate(self, tid: int, cams: dict[int, tuple[np.ndarray, np.ndarray]]) -> np.ndarray | None:
         """Midpoint triangulation of a track over the window, with angle, depth and reprojection checks."""
         cfg = self.cfg
         obs = [(kk, uv) for kk, uv in self.obs.get(tid, []) if kk in cams]
@@ -313,7 +312,7 @@ class SlidingWindowBackend:
         # key alive with a weak prior until it is marginalised.
         remove = list(self.pending_removal)
         self.pending_removal = []
-        owners: list[Optional[tuple[int, int]]] = [None] * graph.size()  # (track id, keyframe) per factor
+        owners: list[tuple[int, int] | None] = [None] * graph.size()  # (track id, keyframe) per factor
         w0 = self.window_start(k)
         n_vis = 0
         new_lms: list[int] = []

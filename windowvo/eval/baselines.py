@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Optional
 
 import cv2
 import numpy as np
@@ -32,7 +31,7 @@ class BaselineRun:
         return self.n_frames / self.wall_s if self.wall_s > 0 else 0.0
 
 
-def essential_chaining(seq: Sequence, max_frames: Optional[int] = None, n_features: int = 1000,
+def essential_chaining(seq: Sequence, max_frames: int | None = None, n_features: int = 1000,
                        ratio: float = 0.75, ransac_px: float = 1.0) -> BaselineRun:
     """Frame-to-frame VO scaled by wheel distance; steps that fail keep the wheels' motion."""
     if seq.odometry is None:

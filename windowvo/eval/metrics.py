@@ -7,12 +7,11 @@ from __future__ import annotations
 
 import copy
 from dataclasses import asdict, dataclass
-from typing import Optional
 
 import numpy as np
 from evo.core import metrics as evo_metrics
-from evo.core.geometry import GeometryException
 from evo.core import sync as evo_sync
+from evo.core.geometry import GeometryException
 from evo.core.trajectory import PoseTrajectory3D
 from evo.core.units import Unit
 
@@ -89,7 +88,7 @@ def evaluate(groundtruth: Trajectory, estimate: Trajectory, max_time_diff: float
     return AccuracyReport(ref.num_poses, path_len, ate_se3, ate_sim3, scale, rpe, drift)
 
 
-def plot_trajectories(path, groundtruth: Optional[Trajectory], estimates: dict[str, Trajectory], title: str = "") -> None:
+def plot_trajectories(path, groundtruth: Trajectory | None, estimates: dict[str, Trajectory], title: str = "") -> None:
     """Top-down (x-y) plot of trajectories, ground truth first, written as PNG."""
     import matplotlib
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Optional
 
 import cv2
 import numpy as np
@@ -23,9 +22,9 @@ from .tracker import KLTTracker, ORBTracker
 @dataclass
 class TwoViewResult:
     inlier_mask: np.ndarray  # (N,) bool, over the common tracks
-    E: Optional[np.ndarray] = None
-    R_cur_kf: Optional[np.ndarray] = None  # rotation taking kf-camera vectors into the current camera
-    t_cur_kf: Optional[np.ndarray] = None  # unit translation direction (current camera frame)
+    E: np.ndarray | None = None
+    R_cur_kf: np.ndarray | None = None  # rotation taking kf-camera vectors into the current camera
+    t_cur_kf: np.ndarray | None = None  # unit translation direction (current camera frame)
     cheirality_ratio: float = 1.0
     rot_comp_parallax_px: float = 0.0
 
@@ -111,7 +110,7 @@ class Frontend:
         cfg: FrontendConfig,
         kf_cfg: KeyframeConfig,
         gate_cfg: GateConfig,
-        static_mask: Optional[np.ndarray] = None,
+        static_mask: np.ndarray | None = None,
     ):
         self.camera = camera
         self.cfg = cfg
@@ -120,13 +119,13 @@ class Frontend:
         self.tracker = ORBTracker(cfg) if cfg.tracker is TrackerKind.ORB else KLTTracker(cfg)
         self.static_mask = static_mask
         self.clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if cfg.clahe else None
-        self.kf_ids: Optional[np.ndarray] = None
-        self.kf_xn: Optional[np.ndarray] = None
+        self.kf_ids: np.ndarray | None = None
+        self.kf_xn: np.ndarray | None = None
         self.kf_time = 0.0
         self.kf_count = 0
         self.focal = 0.5 * (camera.fx + camera.fy)
 
-    def _mask(self, frame: Frame) -> Optional[np.ndarray]:
+    def _mask(self, frame: Frame) -> np.ndarray | None:
         m = self.static_mask
         if frame.mask is not None:
             m = frame.mask if m is None else np.minimum(m, frame.mask)
@@ -141,7 +140,7 @@ class Frontend:
         cy = np.clip((pixels[:, 1] * rows / self.camera.height).astype(int), 0, rows - 1)
         return float(len(set(zip(cx.tolist(), cy.tolist())))) / (cols * rows)
 
-    def process(self, frame: Frame, odom_motion: Optional[tuple[float, float]] = None, force_keyframe: bool = False) -> FrontendOutput:
+    def process(self, frame: Frame, odom_motion: tuple[float, float] | None = None, force_keyframe: bool = False) -> FrontendOutput:
         """Track one frame. ``odom_motion`` is (distance m, |yaw| rad) since the last keyframe."""
         t0 = time.perf_counter()
         image = frame.image
@@ -212,7 +211,7 @@ class Frontend:
         return out
 
     def _keyframe_reason(
-        self, out: FrontendOutput, n_common: int, odom_motion: Optional[tuple[float, float]], force: bool
+        self, out: FrontendOutput, n_common: int, odom_motion: tuple[float, float] | None, force: bool
     ) -> KeyframeReason:
         kc = self.kf_cfg
         tracked_ratio = n_common / max(len(self.kf_ids), 1)

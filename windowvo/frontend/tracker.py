@@ -7,7 +7,7 @@ persistent id, and keep each live track's full pixel history.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Protocol
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -26,11 +26,11 @@ class TrackSet:
 
 
 class Tracker(Protocol):
-    def track(self, image: np.ndarray, mask: Optional[np.ndarray]) -> TrackSet: ...
+    def track(self, image: np.ndarray, mask: np.ndarray | None) -> TrackSet: ...
 
     def drop(self, ids: np.ndarray) -> None: ...
 
-    def history(self, track_id: int, last: Optional[int] = None) -> list[tuple[int, float, float]]: ...
+    def history(self, track_id: int, last: int | None = None) -> list[tuple[int, float, float]]: ...
 
     def tail_starts(self, ids: np.ndarray, n: int) -> np.ndarray: ...
 
@@ -57,7 +57,7 @@ class _History:
     def positions_ago(self, ids: np.ndarray, n: int) -> np.ndarray:
         """Pixel positions of ``ids`` ``n`` frames ago, or the oldest position still held (vectorised)."""
         out = np.full((len(ids), 2), np.nan)
-        for frame, f_ids, f_pts in reversed(self.frames[-(n + 1):]):
+        for _frame, f_ids, f_pts in reversed(self.frames[-(n + 1):]):
             order = np.argsort(f_ids)
             pos = np.clip(np.searchsorted(f_ids, ids, sorter=order), 0, max(len(f_ids) - 1, 0))
             if len(f_ids) == 0:
@@ -66,7 +66,7 @@ class _History:
             out[hit] = f_pts[order[pos[hit]]]
         return out
 
-    def get(self, track_id: int, last: Optional[int] = None) -> list[tuple[int, float, float]]:
+    def get(self, track_id: int, last: int | None = None) -> list[tuple[int, float, float]]:
         out = []
         for frame, ids, pts in reversed(self.frames):
             hit = np.nonzero(ids == track_id)[0]
@@ -124,7 +124,7 @@ class KLTTracker:
         self.lk = dict(winSize=win, maxLevel=cfg.klt_levels,
                        criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
 
-    def history(self, track_id: int, last: Optional[int] = None) -> list[tuple[int, float, float]]:
+    def history(self, track_id: int, last: int | None = None) -> list[tuple[int, float, float]]:
         """Pixel positions (frame, u, v) of a live track, oldest first (the last ``last`` only)."""
         return self._hist.get(int(track_id), last)
 
@@ -138,7 +138,7 @@ class KLTTracker:
         keep = ~np.isin(self.ids, ids)
         self.ids, self.pts, self.ages = self.ids[keep], self.pts[keep], self.ages[keep]
 
-    def track(self, image: np.ndarray, mask: Optional[np.ndarray] = None) -> TrackSet:
+    def track(self, image: np.ndarray, mask: np.ndarray | None = None) -> TrackSet:
         self.frame += 1
         h, w = image.shape[:2]
         pyr = image  # the Python binding takes images, not prebuilt pyramids
@@ -200,7 +200,7 @@ class KLTTracker:
             return np.zeros((0, 2), np.float32)
         return np.concatenate(out).astype(np.float32)
 
-    def _detect(self, image: np.ndarray, mask: Optional[np.ndarray]) -> int:
+    def _detect(self, image: np.ndarray, mask: np.ndarray | None) -> int:
         cfg = self.cfg
         need = cfg.max_features - len(self.ids)
         if need < max(5, cfg.max_features // 10):
@@ -211,7 +211,7 @@ class KLTTracker:
         m[b : h - b, b : w - b] = 255
         if mask is not None:
             m &= np.where(mask > 0, 255, 0).astype(np.uint8)
-        r = int(round(cfg.min_distance_px))
+        r = round(cfg.min_distance_px)
         for x, y in self.pts.astype(int):
             cv2.circle(m, (int(x), int(y)), r, 0, -1)
         cand = self._grid_candidates(image, m, need)
@@ -230,7 +230,7 @@ class KLTTracker:
         self.ids = np.concatenate([self.ids, new_ids])
         self.pts = np.concatenate([self.pts, new_pts.astype(np.float32)])
         self.ages = np.concatenate([self.ages, np.zeros(len(new_pts), np.int32)])
-        return int(len(new_pts))
+        return len(new_pts)
 
 
 class ORBTracker:
@@ -243,12 +243,12 @@ class ORBTracker:
         self.ids = np.zeros(0, np.int64)
         self.pts = np.zeros((0, 2), np.float32)
         self.ages = np.zeros(0, np.int32)
-        self.desc: Optional[np.ndarray] = None
+        self.desc: np.ndarray | None = None
         self.next_id = 0
         self.frame = -1
         self._hist = _History()
 
-    def history(self, track_id: int, last: Optional[int] = None) -> list[tuple[int, float, float]]:
+    def history(self, track_id: int, last: int | None = None) -> list[tuple[int, float, float]]:
         """Pixel positions (frame, u, v) of a live track, oldest first (the last ``last`` only)."""
         return self._hist.get(int(track_id), last)
 
@@ -262,7 +262,7 @@ class ORBTracker:
         if self.desc is not None:
             self.desc = self.desc[keep]
 
-    def track(self, image: np.ndarray, mask: Optional[np.ndarray] = None) -> TrackSet:
+    def track(self, image: np.ndarray, mask: np.ndarray | None = None) -> TrackSet:
         self.frame += 1
         h, w = image.shape[:2]
         kps, desc = self.orb.detectAndCompute(image, mask)
@@ -282,11 +282,11 @@ class ORBTracker:
                 if len(mlist) < 2:
                     continue
                 m, n = mlist
-                if m.distance < 0.75 * n.distance and m.trainIdx not in used:
-                    if np.linalg.norm(pts[m.queryIdx] - self.pts[m.trainIdx]) < 0.25 * max(h, w):
-                        used.add(m.trainIdx)
-                        new_ids[m.queryIdx] = self.ids[m.trainIdx]
-                        new_ages[m.queryIdx] = self.ages[m.trainIdx] + 1
+                if (m.distance < 0.75 * n.distance and m.trainIdx not in used
+                        and np.linalg.norm(pts[m.queryIdx] - self.pts[m.trainIdx]) < 0.25 * max(h, w)):
+                    used.add(m.trainIdx)
+                    new_ids[m.queryIdx] = self.ids[m.trainIdx]
+                    new_ages[m.queryIdx] = self.ages[m.trainIdx] + 1
         matched = new_ids >= 0
         budget = max(self.cfg.max_features - int(matched.sum()), 0)
         cells = self.cfg.grid_cols * self.cfg.grid_rows

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import yaml
@@ -45,7 +44,7 @@ log = logging.getLogger(__name__)
 T_BASE_CAM_FORWARD = make_T(R_BASE_CAM_FORWARD, [0.0, 0.0, 0.0])
 
 
-def _camera_from_config(c: Optional[CameraConfig], what: str) -> CameraModel:
+def _camera_from_config(c: CameraConfig | None, what: str) -> CameraModel:
     if c is None:
         raise CalibrationError(f"dataset '{what}' needs a 'camera' section in the config (width, height, fx, fy, cx, cy)")
     T = np.asarray(c.T_base_cam, float).reshape(4, 4) if c.T_base_cam is not None else T_BASE_CAM_FORWARD
@@ -128,7 +127,7 @@ def load_kitti(root: Path) -> Sequence:
 # ---------------------------------------------------------------------------- TUM RGB-D
 
 
-def _read_table(path: Path, min_cols: int, sep: Optional[str] = None) -> list[list[str]]:
+def _read_table(path: Path, min_cols: int, sep: str | None = None) -> list[list[str]]:
     if not path.is_file():
         raise SequenceError(f"file not found: {path}")
     rows = []
@@ -160,7 +159,7 @@ def _interp_poses(t_src: np.ndarray, T_src: np.ndarray, t: np.ndarray) -> tuple[
     return out, inside
 
 
-def load_tum(root: Path, cam_cfg: Optional[CameraConfig]) -> Sequence:
+def load_tum(root: Path, cam_cfg: CameraConfig | None) -> Sequence:
     root = Path(root)
     if not root.is_dir():
         raise SequenceError(f"sequence folder not found: {root}")
@@ -245,7 +244,7 @@ def load_euroc(root: Path) -> Sequence:
 # ---------------------------------------------------------------------------- plain folder
 
 
-def load_folder(root: Path, cam_cfg: Optional[CameraConfig], fps: float) -> Sequence:
+def load_folder(root: Path, cam_cfg: CameraConfig | None, fps: float) -> Sequence:
     root = Path(root)
     if not root.is_dir():
         raise SequenceError(f"image folder not found: {root}")

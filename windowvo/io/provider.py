@@ -7,9 +7,9 @@ and skipped; timestamp gaps (dropped frames) are reported and processing goes on
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Optional, Union
 
 import cv2
 import numpy as np
@@ -34,8 +34,8 @@ class DataProvider:
         self,
         seq: Sequence,
         checks: InputChecksConfig,
-        max_frames: Optional[int] = None,
-        mask_folder: Optional[Path] = None,
+        max_frames: int | None = None,
+        mask_folder: Path | None = None,
     ):
         self.seq = seq
         self.checks = checks
@@ -43,12 +43,12 @@ class DataProvider:
         self.mask_folder = mask_folder
         dts = np.diff(seq.timestamps[: self.n])
         self.nominal_dt = float(np.median(dts)) if len(dts) else 0.0
-        self._prev_img: Optional[np.ndarray] = None
+        self._prev_img: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.n
 
-    def _mask(self, i: int) -> Optional[np.ndarray]:
+    def _mask(self, i: int) -> np.ndarray | None:
         if self.mask_folder is None:
             return None
         name = self.seq.image_paths[i].name
@@ -61,7 +61,7 @@ class DataProvider:
             return None
         return m
 
-    def __iter__(self) -> Iterator[Union[Frame, SkippedFrame]]:
+    def __iter__(self) -> Iterator[Frame | SkippedFrame]:
         ts = self.seq.timestamps
         for i in range(self.n):
             t = float(ts[i])

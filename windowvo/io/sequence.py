@@ -14,7 +14,6 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
 
 import cv2
 import numpy as np
@@ -37,8 +36,8 @@ class Sequence:
     image_paths: list[Path]
     timestamps: np.ndarray
     camera: CameraModel
-    odometry: Optional[WheelOdometry] = None
-    groundtruth: Optional[Trajectory] = None
+    odometry: WheelOdometry | None = None
+    groundtruth: Trajectory | None = None
     warnings: list[str] = field(default_factory=list)
     name: str = ""
 

@@ -31,7 +31,7 @@ class Trajectory:
             return 0.0
         return float(np.linalg.norm(np.diff(self.positions, axis=0), axis=1).sum())
 
-    def anchored(self) -> "Trajectory":
+    def anchored(self) -> Trajectory:
         """Re-express in the frame of the first pose (world = base at the first frame)."""
         T0_inv = inv_T(self.T_world_base[0])
         return Trajectory(self.timestamps.copy(), np.einsum("ij,njk->nik", T0_inv, self.T_world_base))

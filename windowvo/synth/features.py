@@ -15,7 +15,7 @@ import numpy as np
 from ..geometry import inv_T
 from ..io.odometry import WheelOdometry
 from ..types import FrontendOutput, GateOutcome, KeyframeReason
-from .generate import SynthSpec, SyntheticWorld, build_world, simulate_wheel_odometry
+from .generate import SyntheticWorld, SynthSpec, build_world, simulate_wheel_odometry
 
 
 @dataclass

@@ -217,7 +217,7 @@ def generate_sequence(out: Path, spec: SynthSpec, progress: bool = False) -> Syn
     world = build_world(spec)
     cam = world.camera
     renderer = Renderer(world.scene, cam, seed=spec.seed) if spec.write_images else None
-    n = int(round(spec.duration_s * spec.fps)) + 1
+    n = round(spec.duration_s * spec.fps) + 1
     times_all = np.arange(n) / spec.fps
     keep = [i for i in range(n) if i not in set(spec.dropped_frames)]
     rng = np.random.default_rng(spec.seed + 1)

@@ -63,7 +63,7 @@ def make_path(kind: PathKind, duration: float, speed: float = 1.0, size: float =
     """Path of the given kind lasting ``duration`` seconds at ``speed`` m/s (room-sized)."""
     kind = PathKind(kind)
     dt = 1.0 / DENSE_HZ
-    n = int(round(duration * DENSE_HZ)) + 1
+    n = round(duration * DENSE_HZ) + 1
     v = np.full(n, speed)
     if kind in (PathKind.LOOP, PathKind.STOP_AND_GO):
         length = speed * duration + 1.0
@@ -96,7 +96,7 @@ def make_path(kind: PathKind, duration: float, speed: float = 1.0, size: float =
         # plateau, back down, a U-turn below, and so on.
         straight, r = 12.0, 2.5
         pts = []
-        for lap in range(int(speed * duration / (2 * straight + 2 * np.pi * r)) + 2):
+        for _lap in range(int(speed * duration / (2 * straight + 2 * np.pi * r)) + 2):
             x = np.linspace(-straight / 2, straight / 2, 1200)
             pts.append(np.stack([x, np.zeros_like(x)], axis=1))
             a = np.linspace(np.pi / 2, -np.pi / 2, 800)

@@ -9,7 +9,6 @@ texture through a mip-mapped atlas (trilinear) so distant surfaces do not alias.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
 
 import cv2
 import numpy as np
@@ -112,7 +111,7 @@ class Ramp:
 class Scene:
     planes: list[Plane]
     moving: list[MovingBox] = field(default_factory=list)
-    ramp: Optional[Ramp] = None
+    ramp: Ramp | None = None
     texture_seed: int = 0
 
     def ground_height(self, x: float, y: float) -> float:
@@ -138,8 +137,8 @@ def make_room_scene(
     half_y: float = 9.0,
     wall_h: float = 3.0,
     obstacles: list[tuple[float, float, float, float, float]] | None = None,
-    ramp: Optional[Ramp] = None,
-    moving: Optional[list[MovingBox]] = None,
+    ramp: Ramp | None = None,
+    moving: list[MovingBox] | None = None,
 ) -> Scene:
     """A walled room with textured floor and box obstacles ``(x, y, sx, sy, sz)``."""
     rng = np.random.default_rng(seed)

@@ -17,7 +17,7 @@ Timelines: ``frame`` (index) and ``time`` (seconds, the sequence clock).
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Optional
+from typing import TYPE_CHECKING
 
 import numpy as np
 import rerun as rr
@@ -63,7 +63,7 @@ def _transform(T: np.ndarray) -> rr.Transform3D:
 
 
 class RerunLogger:
-    def __init__(self, cfg: Config, seq: "Sequence", recording_path=None):
+    def __init__(self, cfg: Config, seq: Sequence, recording_path=None):
         self.cfg = cfg
         self.seq = seq
         self.rec = rr.RecordingStream("windowvo", make_default=False)
@@ -90,7 +90,7 @@ class RerunLogger:
             camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.3), static=True)
         self._log_reference_trajectories()
         self.est_positions: list[np.ndarray] = []
-        self.last_logged_position: Optional[np.ndarray] = None
+        self.last_logged_position: np.ndarray | None = None
 
     def _log_reference_trajectories(self) -> None:
         seq = self.seq
@@ -106,7 +106,7 @@ class RerunLogger:
             self.rec.log("world/wheel_odometry", rr.LineStrips3D([pts], colors=[[255, 150, 40]], radii=0.01),
                          static=True)
 
-    def log_frame(self, frame: Frame, fo: FrontendOutput, bo: Optional[BackendOutput], pipe: "Pipeline") -> None:
+    def log_frame(self, frame: Frame, fo: FrontendOutput, bo: BackendOutput | None, pipe: Pipeline) -> None:
         rec = self.rec
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("time", duration=float(frame.timestamp))
@@ -136,7 +136,7 @@ class RerunLogger:
             rec.log("log", rr.TextLog(f"keyframe {fo.frame_index}: {fo.keyframe_reason.value}, gate {fo.gate.value}, "
                                       f"backend {bo.status.value}"))
 
-    def _log_camera(self, frame: Frame, fo: FrontendOutput, pipe: "Pipeline", cam_path: str) -> None:
+    def _log_camera(self, frame: Frame, fo: FrontendOutput, pipe: Pipeline, cam_path: str) -> None:
         rec = self.rec
         rec.log(f"{cam_path}/image", rr.Image(frame.image))
         rec.log(f"{cam_path}/tracks", rr.Points2D(fo.pixels, colors=age_colors(fo.track_ages), radii=2.0))
@@ -152,7 +152,7 @@ class RerunLogger:
             rec.log(f"{cam_path}/tails", rr.Arrows2D(origins=start[ok], vectors=fo.pixels[ok] - start[ok],
                                                      colors=[[90, 200, 255]], radii=0.6))
 
-    def finish(self, pipe: "Pipeline", result: "RunResult", report=None) -> None:
+    def finish(self, pipe: Pipeline, result: RunResult, report=None) -> None:
         """Log the final trajectory (one pose per frame), the same as trajectory.txt."""
         traj = result.trajectory
         if len(traj):
