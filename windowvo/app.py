@@ -81,7 +81,7 @@ def run_job(cfg: Config, progress=None) -> JobReport:
     write_outputs(cfg, result, cfg.output)
     if result.n_keyframes == 0 and not result.interrupted:
         if viewer is not None:
-            viewer.finish(pipe, result, None)
+            viewer.finish(result, None)
         raise WindowVOError(
             f"no keyframe in {result.n_frames} frames: no trackable features (images black, uniform or fully "
             f"masked?); stats.csv in {cfg.output} says what each frame had")
@@ -97,7 +97,7 @@ def run_job(cfg: Config, progress=None) -> JobReport:
         except WindowVOError as err:
             log.warning("evaluation skipped: %s", err)
     if viewer is not None:
-        viewer.finish(pipe, result, report)
+        viewer.finish(result, report)
     return report
 
 

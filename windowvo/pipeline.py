@@ -27,7 +27,7 @@ from .geometry import interpolate_T
 from .io.provider import DataProvider, SkippedFrame
 from .io.sequence import Sequence
 from .io.trajectory import Trajectory, write_tum
-from .types import BackendOutput, BackendStatus, FrameRecord, FrontendOutput
+from .types import BackendOutput, BackendStatus, FrameEstimate, FrameRecord, FrontendOutput
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +46,7 @@ class RunResult:
     backend_ms: list[float] = field(default_factory=list)
     n_resets: int = 0
     notes: list[str] = field(default_factory=list)
+    last_frame_index: int = -1
 
     @property
     def fps(self) -> float:
@@ -81,6 +82,8 @@ class Pipeline:
         self.kf_times: list[float] = []
         self.records: list[FrameRecord] = []
         self.last_kf_time: float | None = None
+        self.last_kf_online: np.ndarray | None = None  # newest keyframe pose as estimated when it was added
+        self.online: list[np.ndarray] = []  # causal T_world_base per processed or skipped frame
         self.notes: list[str] = []
 
     # ------------------------------------------------------------------ odometry helpers
@@ -152,14 +155,18 @@ class Pipeline:
             backend_ms=[r.backend_ms for r in self.records if r.is_keyframe],
             n_resets=self.backend.n_resets,
             notes=self.notes,
+            last_frame_index=self.frames[-1][0] if self.frames else -1,
         )
 
     def _step(self, item, is_last: bool) -> None:
+        t_in = time.perf_counter()
         if isinstance(item, SkippedFrame):
             log.warning("skipping %s", item.reason)
+            note = f"skipped: {item.reason}"
             self.frames.append((item.index, item.timestamp))
+            self.online.append(self._online_pose(item.timestamp))
             self.records.append(FrameRecord(item.index, item.timestamp, 0, 0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, False,
-                                            "", "", "", 0, float("nan"), 0.0, 0.0, note=f"skipped: {item.reason}"))
+                                            "", "", "", 0, float("nan"), 0.0, 0.0, note=note))
             return
         frame = item
         fo = self.frontend.process(frame, self._odom_since_kf(frame.timestamp), force_keyframe=is_last)
@@ -175,14 +182,30 @@ class Pipeline:
             self.kf_frames.append(frame.index)
             self.kf_times.append(frame.timestamp)
             self.last_kf_time = frame.timestamp
+            self.last_kf_online = bo.T_world_base.copy()
             if bo.status is BackendStatus.RECOVERED:
                 note = (note + "; " if note else "") + "backend reset"
+        T_online = self._online_pose(frame.timestamp)
         # The frame counts as processed only once everything about it is known (an interrupt
         # in the middle leaves frames and records in step).
         self.frames.append((frame.index, frame.timestamp))
+        self.online.append(T_online)
         self.records.append(self._record(fo, bo, note))
         if self.viewer is not None:
-            self.viewer.log_frame(frame, fo, bo, self)
+            est = FrameEstimate(frame.index, frame.timestamp, T_online, fo.is_keyframe, False,
+                                bo.status if bo is not None else None, (time.perf_counter() - t_in) * 1000.0,
+                                fo, bo, note)
+            self.viewer.log_frame(frame, est)
+
+    def _online_pose(self, t: float) -> np.ndarray:
+        """Causal pose at time t: the newest keyframe estimate as it was when added, moved on by
+        the wheels since (held without wheels)."""
+        if self.last_kf_online is None or self.last_kf_time is None:
+            return np.eye(4)
+        odo = self.seq.odometry if self.use_odometry else None
+        if odo is not None and t > self.last_kf_time:
+            return self.last_kf_online @ odo.delta(self.last_kf_time, t)
+        return self.last_kf_online.copy()
 
     def _record(self, fo: FrontendOutput, bo: BackendOutput | None, note: str) -> FrameRecord:
         return FrameRecord(

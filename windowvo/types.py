@@ -101,6 +101,27 @@ class BackendOutput:
 
 
 @dataclass
+class FrameEstimate:
+    """What a robot gets for one frame, at that frame's time (causal: no later frame used).
+
+    ``T_world_base`` is the newest keyframe estimate right after it was added, moved on to this
+    frame by the wheels (or held, without wheels). The fixed-lag smoothed pose of the same frame,
+    refined by later keyframes, is in the smoothed trajectory instead.
+    """
+
+    frame_index: int
+    timestamp: float
+    T_world_base: np.ndarray  # 4x4 causal pose of the base in world
+    is_keyframe: bool = False
+    skipped: bool = False  # the frame was unusable (black, duplicate, unreadable); the pose still holds
+    status: BackendStatus | None = None  # back-end status when this frame was a keyframe
+    latency_ms: float = 0.0  # frame in -> pose out
+    frontend: FrontendOutput | None = None
+    backend: BackendOutput | None = None
+    note: str = ""
+
+
+@dataclass
 class FrameRecord:
     """Per-frame row of stats.csv."""
 

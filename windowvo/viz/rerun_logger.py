@@ -25,11 +25,11 @@ import rerun.blueprint as rrb
 
 from ..config import Config, RerunMode
 from ..geometry import quat_from_R
-from ..types import BackendOutput, Frame, FrontendOutput
+from ..types import Frame, FrameEstimate, FrontendOutput
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..io.sequence import Sequence
-    from ..pipeline import Pipeline, RunResult
+    from ..pipeline import RunResult
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,8 @@ class RerunLogger:
             camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.3), static=True)
         self._log_reference_trajectories()
         self.est_positions: list[np.ndarray] = []
-        self.last_logged_position: np.ndarray | None = None
+        # Pixels of the tracks over the last few frames, for the tails: (ids, pixels) per frame.
+        self._tail_history: list[tuple[np.ndarray, np.ndarray]] = []
 
     def _log_reference_trajectories(self) -> None:
         seq = self.seq
@@ -106,13 +107,20 @@ class RerunLogger:
             self.rec.log("world/wheel_odometry", rr.LineStrips3D([pts], colors=[[255, 150, 40]], radii=0.01),
                          static=True)
 
-    def log_frame(self, frame: Frame, fo: FrontendOutput, bo: BackendOutput | None, pipe: Pipeline) -> None:
+    def log_frame(self, frame: Frame, est: FrameEstimate) -> None:
+        fo, bo = est.frontend, est.backend
+        if fo is None:
+            return
         rec = self.rec
+        tail = self.cfg.viz.track_tail
+        if tail > 1:
+            self._tail_history.append((fo.track_ids, fo.pixels))
+            del self._tail_history[:-tail]
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("time", duration=float(frame.timestamp))
         cam_path = "world/estimate/base/cam"
         if frame.index % self.cfg.viz.image_every == 0:
-            self._log_camera(frame, fo, pipe, cam_path)
+            self._log_camera(frame, fo, cam_path)
         rec.log("plots/tracked_features", rr.Scalars(float(len(fo.track_ids))))
         rec.log("plots/inlier_ratio", rr.Scalars(float(fo.inlier_ratio)))
         rec.log("plots/parallax_px", rr.Scalars(float(fo.parallax_px)))
@@ -121,7 +129,6 @@ class RerunLogger:
             T = bo.T_world_base
             rec.log("world/estimate/base", _transform(T))
             self.est_positions.append(T[:3, 3].copy())
-            self.last_logged_position = T[:3, 3].copy()
             if len(self.est_positions) % 10 == 1:
                 # the whole keyframe path, every 10 keyframes (keeps the cost per frame flat)
                 rec.log("world/estimate/keyframes", rr.LineStrips3D([np.asarray(self.est_positions)],
@@ -136,7 +143,15 @@ class RerunLogger:
             rec.log("log", rr.TextLog(f"keyframe {fo.frame_index}: {fo.keyframe_reason.value}, gate {fo.gate.value}, "
                                       f"backend {bo.status.value}"))
 
-    def _log_camera(self, frame: Frame, fo: FrontendOutput, pipe: Pipeline, cam_path: str) -> None:
+    def _tail_starts(self, ids: np.ndarray) -> np.ndarray:
+        """Where each track was at the oldest frame of the tail history it appears in, (N, 2)."""
+        start = np.full((len(ids), 2), np.nan)
+        for h_ids, h_px in reversed(self._tail_history):
+            _, a, b = np.intersect1d(ids, h_ids, return_indices=True)
+            start[a] = h_px[b]
+        return start
+
+    def _log_camera(self, frame: Frame, fo: FrontendOutput, cam_path: str) -> None:
         rec = self.rec
         rec.log(f"{cam_path}/image", rr.Image(frame.image))
         rec.log(f"{cam_path}/tracks", rr.Points2D(fo.pixels, colors=age_colors(fo.track_ages), radii=2.0))
@@ -147,21 +162,20 @@ class RerunLogger:
         tail = self.cfg.viz.track_tail
         if tail > 1 and len(fo.track_ids):
             # Track tails as arrows from where each track was `tail` frames ago to where it is.
-            start = pipe.frontend.tracker.tail_starts(fo.track_ids, tail)
+            start = self._tail_starts(fo.track_ids)
             ok = np.all(np.isfinite(start), axis=1)
             rec.log(f"{cam_path}/tails", rr.Arrows2D(origins=start[ok], vectors=fo.pixels[ok] - start[ok],
                                                      colors=[[90, 200, 255]], radii=0.6))
 
-    def finish(self, pipe: Pipeline, result: RunResult, report=None) -> None:
+    def finish(self, result: RunResult, report=None) -> None:
         """Log the final trajectory (one pose per frame), the same as trajectory.txt."""
         traj = result.trajectory
-        if len(traj):
-            last_frame = pipe.frames[-1][0]
+        if len(traj) and result.last_frame_index >= 0:
+            last_frame = result.last_frame_index
             self.rec.set_time("frame", sequence=last_frame)
             self.rec.set_time("time", duration=float(traj.timestamps[-1]))
             self.rec.log("world/estimate/final", rr.LineStrips3D([traj.positions], colors=[[40, 200, 90]], radii=0.02))
             self.rec.log("world/estimate/base", _transform(traj.T_world_base[-1]))
-            self.last_logged_position = traj.positions[-1].copy()
         self.rec.flush()
         if self.path is not None:
             self.rec.disconnect()
