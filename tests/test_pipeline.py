@@ -54,6 +54,10 @@ def test_monocular_run_is_up_to_scale(short_loop, tmp_path, capsys):
     assert "up to scale" in (tmp_path / "out" / "trajectory.txt").read_text().splitlines()[1]
     # shape is right after a similarity alignment
     assert rep.accuracy.ate_sim3_rmse_m < 0.05 * rep.accuracy.path_length_m
+    # RPE and end drift are measured in the Sim(3) scale, never in the unit-baseline scale
+    assert rep.accuracy.monocular
+    assert "after Sim(3) scale" in rep.accuracy.summary(metric=False)
+    assert rep.accuracy.as_dict()["ate_se3_rmse_m"] is None
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])

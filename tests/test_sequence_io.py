@@ -137,7 +137,7 @@ def test_featureless_sequence_is_a_clear_error(seq, tmp_path):
 
 def test_synth_and_eval_command_lines(tmp_path):
     out = tmp_path / "synth"
-    r = subprocess.run([sys.executable, "-m", "windowvo.synth", str(out), "--path", "straight", "--duration", "1.0",
+    r = subprocess.run([sys.executable, "-m", "windowvo.synth", str(out), "--path", "loop", "--duration", "1.0",
                         "--obstacles", "2", "--black-frames", "3"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     s = load_native(out)
@@ -145,13 +145,28 @@ def test_synth_and_eval_command_lines(tmp_path):
     import cv2
 
     assert cv2.imread(str(s.image_paths[3]), cv2.IMREAD_GRAYSCALE).max() == 0  # the black frame
-    e = subprocess.run([sys.executable, "-m", "windowvo.eval", str(out / "groundtruth.txt"), str(out / "groundtruth.txt"),
+    # An estimate 10% too large (positions scaled by 1.1 about the first one, same rotations).
+    # Known answers for any non-straight path: a rigid alignment leaves 0.1 x the positions'
+    # spread about their mean (ATE SE(3)); Sim(3) removes it with scale 1/1.1; after aligning
+    # the first pose the end point is 0.1 x |p_end - p_0| off.
+    gt = s.groundtruth
+    p = gt.positions
+    est = gt.T_world_base.copy()
+    est[:, :3, 3] = p[0] + 1.1 * (p - p[0])
+    write_tum(tmp_path / "est.txt", gt.timestamps, est)
+    e = subprocess.run([sys.executable, "-m", "windowvo.eval", str(out / "groundtruth.txt"), str(tmp_path / "est.txt"),
                         "--json"], capture_output=True, text=True, timeout=300)
     assert e.returncode == 0, e.stderr
     import json
 
     rep = json.loads(e.stdout)
-    assert rep["ate_se3_rmse_m"] < 1e-6 and rep["n_poses"] == 21
+    assert rep["n_poses"] == 21
+    spread = float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))))
+    assert rep["ate_se3_rmse_m"] == pytest.approx(0.1 * spread, abs=2e-6)
+    assert rep["sim3_scale"] == pytest.approx(1.0 / 1.1, abs=1e-4)
+    assert rep["ate_sim3_rmse_m"] == pytest.approx(0.0, abs=2e-6)
+    end = 0.1 * float(np.linalg.norm(p[-1] - p[0]))
+    assert rep["end_drift_pct"] == pytest.approx(100.0 * end / gt.path_length(), abs=1e-3)
     bad = subprocess.run([sys.executable, "-m", "windowvo.eval", str(out / "nope.txt"), str(out / "groundtruth.txt")],
                          capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr

@@ -90,7 +90,7 @@ def run_job(cfg: Config, progress=None) -> JobReport:
         from .eval.metrics import evaluate
 
         try:
-            report.accuracy = evaluate(seq.groundtruth, result.trajectory)
+            report.accuracy = evaluate(seq.groundtruth, result.trajectory, monocular=result.monocular)
             wheel = wheel_only_trajectory(seq, result.trajectory.timestamps)
             if wheel is not None:
                 report.wheel_accuracy = evaluate(seq.groundtruth, wheel)

@@ -25,7 +25,3 @@ class CalibrationError(SequenceError):
 
 class FrameError(WindowVOError):
     """A single frame could not be used (unreadable, black, duplicated); the run goes on."""
-
-
-class BackendError(WindowVOError):
-    """The smoother failed in a way the recovery logic could not repair."""
