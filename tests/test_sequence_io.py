@@ -115,6 +115,22 @@ def test_unreadable_image_is_skipped_and_run_goes_on(seq, tmp_path):
     assert "unreadable" in r.stderr
 
 
+def test_malformed_groundtruth_is_a_warning_not_a_stop(seq, tmp_path):
+    """Ground truth only feeds the evaluation: a malformed last line warns, skips the
+    evaluation, and the run still writes its trajectory (exit 0)."""
+    with (seq / "groundtruth.txt").open("a") as fh:
+        fh.write("12.345 1.0 2.0\n")
+    s = load_native(seq)
+    assert s.groundtruth is None
+    assert any("ground truth ignored" in w and "expected 8 numbers" in w for w in s.warnings)
+    r = run_cli(seq, tmp_path / "out")
+    assert r.returncode == 0, r.stderr
+    assert "Traceback" not in r.stderr
+    assert "ground truth ignored, no evaluation" in r.stderr and "groundtruth.txt:" in r.stderr
+    assert len(read_tum(tmp_path / "out" / "trajectory.txt")) == 30
+    assert "accuracy:" not in r.stdout
+
+
 def test_tum_round_trip(tmp_path):
     rng = np.random.default_rng(0)
     poses = np.stack([make_T(rpy_to_R(*rng.uniform(-3, 3, 3)), rng.normal(size=3)) for _ in range(20)])

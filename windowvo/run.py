@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -68,6 +69,21 @@ def default_config(overrides: list[str]) -> Config:
     return config_from_dict(data, base_dir=Path.cwd())
 
 
+def check_output_folder(out: Path) -> None:
+    """Fail early, with one line, when the outputs cannot be written to ``out`` as a folder."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"output '{out}' is an existing file; 'output' must be a folder")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise ConfigError(f"output '{out}' cannot be created: '{parent}' is a file, not a folder")
+            if not os.access(parent, os.W_OK | os.X_OK):
+                raise ConfigError(f"output '{out}' cannot be created: '{parent}' is not writable")
+            break
+    if out.is_dir() and not os.access(out, os.W_OK | os.X_OK):
+        raise ConfigError(f"output folder '{out}' is not writable")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     level = logging.DEBUG if args.verbose else (logging.WARNING if args.quiet else logging.INFO)
@@ -82,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_config(config_arg, overrides) if config_arg else default_config(overrides)
         if args.no_progress:
             cfg.progress = False
+        check_output_folder(cfg.output)
         from .app import run_and_report
 
         result = run_and_report(cfg)

@@ -183,7 +183,11 @@ def load_native(root: Path, fps: float = 20.0) -> Sequence:
     groundtruth = None
     gt_path = root / "groundtruth.txt"
     if gt_path.is_file():
-        groundtruth = read_tum(gt_path)
+        try:
+            groundtruth = read_tum(gt_path)
+        except SequenceError as err:
+            # Ground truth only feeds the evaluation: a broken file must not stop the run.
+            warnings.append(f"ground truth ignored, no evaluation: {err}")
     return Sequence(root, images, timestamps, camera, odometry, groundtruth, warnings, name=root.name)
 
 
