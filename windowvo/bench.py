@@ -154,6 +154,22 @@ def sequences_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def run_cases_in_processes(cases: list[SeqCase], cache: Path, out: Path, jobs: int) -> list[dict]:
+    """Each case in a fresh interpreter (``jobs`` at once, windowvo.executors); failures are reported and dropped."""
+    from .executors import LocalExecutor, call_task
+
+    tasks = [call_task(c.name, run_case, c, cache, out) for c in cases]
+    by_name = {o.key: o for o in LocalExecutor(max(1, jobs)).run(tasks)}
+    rows = []
+    for c in cases:
+        o = by_name[c.name]
+        if o.ok:
+            rows.append(o.value)
+        else:
+            print(f"bench: {c.name} failed: {o.reason}", file=sys.stderr)
+    return rows
+
+
 # ---------------------------------------------------------------------------- component suites
 
 
@@ -284,8 +300,7 @@ def main(argv=None) -> int:
         for c in cases:
             if c.kind == "synth":
                 ensure_rendered(c, cache)
-        with ProcessPoolExecutor(max_workers=max(1, a.jobs), max_tasks_per_child=1) as ex:
-            rows = list(ex.map(run_case, cases, [cache] * len(cases), [out] * len(cases)))
+        rows = run_cases_in_processes(cases, cache, out, a.jobs)
         results["sequences"] = rows
         print("## Sequences\n")
         print(sequences_table(rows))
