@@ -1,18 +1,20 @@
 """Dataset loaders on small fixtures written in their real layouts, and KITTI regression."""
 
+import logging
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+import yaml
 from conftest import SHARED_DATA, make_config
 
 from windowvo.app import run_job
-from windowvo.config import config_from_dict
+from windowvo.config import config_from_dict, load_config
 from windowvo.errors import CalibrationError, SequenceError
 from windowvo.eval.baselines import essential_chaining
 from windowvo.eval.metrics import evaluate
-from windowvo.geometry import make_T, quat_from_R, rpy_to_R
+from windowvo.geometry import make_T, rpy_to_R
 from windowvo.io import datasets
 from windowvo.io.sequence import load_native
 
@@ -59,31 +61,64 @@ def test_kitti_fixture(tmp_path):
         datasets.load_kitti(root)
 
 
+def rodrigues(axis, angle: float) -> np.ndarray:
+    """Rotation by ``angle`` about ``axis`` (written out here, independent of windowvo.geometry)."""
+    u = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+
+
+# Ground-truth motion of the fixtures: a constant-rate rotation about a skewed axis, starting
+# from a non-identity attitude, and a constant velocity, so that interpolation is exact and a
+# quaternion read in the wrong order (w first vs w last) or with permuted axes gives other poses.
+AXIS = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
+ALPHA0, OMEGA = 0.7, 0.8  # rad, rad/s
+VEL = np.array([0.3, -0.2, 0.5])  # m/s
+
+
+def quat_xyzw(angle: float) -> list[float]:
+    s = np.sin(angle / 2.0)
+    return [AXIS[0] * s, AXIS[1] * s, AXIS[2] * s, np.cos(angle / 2.0)]
+
+
+def expected_anchored(dt: float) -> np.ndarray:
+    """T_first_k of a frame moving as above, dt after the first image: R(axis, omega dt) and
+    R(axis, alpha0 + omega t_first)^T (vel dt)."""
+    return make_T(rodrigues(AXIS, OMEGA * dt), rodrigues(AXIS, ALPHA0).T @ (VEL * dt))
+
+
 def test_tum_fixture(tmp_path):
     root = tmp_path / "tum"
     names = _images(root / "rgb", 4)
     t_img = 100.0 + 0.05 * np.arange(4)
     (root / "rgb.txt").write_text("# color images\n# file\n# timestamp filename\n" +
                                   "".join(f"{t:.6f} rgb/{n}\n" for t, n in zip(t_img, names)))
-    # ground truth at 100 Hz: camera (optical frame) moving along its z axis at 1 m/s
+    # ground truth at 100 Hz: pose of the camera (optical frame) in the mocap world, alpha(100 s) = ALPHA0
     tg = 99.9 + 0.01 * np.arange(40)
     rows = []
     for t in tg:
-        q = quat_from_R(np.eye(3))
-        rows.append(f"{t:.4f} 0 0 {t - 99.9:.6f} {q[0]} {q[1]} {q[2]} {q[3]}")
-    (root / "groundtruth.txt").write_text("# ground truth\n" + "\n".join(rows) + "\n")
+        q = quat_xyzw(ALPHA0 + OMEGA * (t - 100.0))
+        p = np.array([1.0, 2.0, 1.5]) + VEL * (t - 100.0)
+        rows.append(f"{t:.4f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {q[0]:.12f} {q[1]:.12f} {q[2]:.12f} {q[3]:.12f}")
+    (root / "groundtruth.txt").write_text("# ground truth\n# timestamp tx ty tz qx qy qz qw\n" + "\n".join(rows) + "\n")
     cfg = config_from_dict({"sequence": str(root), "output": str(tmp_path / "o"), "dataset": "tum",
                             "camera": {"width": 64, "height": 48, "fx": 50, "fy": 50, "cx": 32, "cy": 24}})
     seq = datasets.load(cfg)
     assert len(seq) == 4 and seq.camera.fx == 50
     gt = seq.groundtruth
     assert np.allclose(gt.timestamps, t_img)
-    assert np.allclose(gt.T_world_base[3][:3, 3], [0.15, 0.0, 0.0], atol=1e-6)  # forward in base x
+    # base = camera with robot axes: T_world_base = T_base_cam T_first_k T_cam_base
+    T_bc = make_T(R_BC, [0.0, 0.0, 0.0])
+    for k in range(4):
+        expected = T_bc @ expected_anchored(t_img[k] - 100.0) @ np.linalg.inv(T_bc)
+        assert np.allclose(gt.T_world_base[k], expected, atol=1e-7), k
+    # the camera's optical axis (z) maps to the base's forward axis (x)
+    assert np.allclose(R_BC @ np.array([0.0, 0.0, 1.0]), [1.0, 0.0, 0.0])
     with pytest.raises(CalibrationError, match="camera"):
         datasets.load(config_from_dict({"sequence": str(root), "output": "o", "dataset": "tum"}))
 
 
-def test_euroc_fixture(tmp_path):
+def _euroc(tmp_path) -> Path:
     mav = tmp_path / "euroc" / "mav0"
     names = _images(mav / "cam0" / "data", 4, size=(752, 480))
     t_ns = 1403636579763555584 + 50_000_000 * np.arange(4)
@@ -107,18 +142,81 @@ distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]
 """)
     gt_dir = mav / "state_groundtruth_estimate0"
     gt_dir.mkdir(parents=True)
+    # body B in world R at 200 Hz, alpha = ALPHA0 at the first image; columns p x y z, q w x y z, then
+    # velocity and biases
     tg = t_ns[0] - 10_000_000 + 5_000_000 * np.arange(50)
-    rows = [f"{t},{1.0 + 2.0 * (t - tg[0]) * 1e-9},{2.0},{0.5},1,0,0,0,0,0,0,0,0,0,0,0,0" for t in tg]
-    (gt_dir / "data.csv").write_text("#timestamp,p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []\n"
+    rows = []
+    for t in tg:
+        dt = (int(t) - int(t_ns[0])) * 1e-9
+        x, y, z, w = quat_xyzw(ALPHA0 + OMEGA * dt)
+        p = np.array([4.0, -1.0, 0.8]) + VEL * dt
+        rows.append(f"{t},{p[0]:.12f},{p[1]:.12f},{p[2]:.12f},{w:.12f},{x:.12f},{y:.12f},{z:.12f}" + ",0" * 9)
+    (gt_dir / "data.csv").write_text("#timestamp,p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],"
+                                     "q_RS_z [],v_RS_R_x,v_RS_R_y,v_RS_R_z,b_w_x,b_w_y,b_w_z,b_a_x,b_a_y,b_a_z\n"
                                      + "\n".join(rows) + "\n")
-    seq = datasets.load_euroc(tmp_path / "euroc")
+    return tmp_path / "euroc"
+
+
+def test_euroc_fixture(tmp_path):
+    seq = datasets.load_euroc(_euroc(tmp_path))
     cam = seq.camera
     assert cam.distortion_model.value == "radtan" and len(cam.distortion) == 4
     assert abs(cam.fx - 458.654) < 1e-9 and abs(cam.T_base_cam[0, 3] + 0.0216401454975) < 1e-12
     gt = seq.groundtruth
     assert len(gt) == 4
-    # body moves along world x at 2 m/s; anchored at the first image
-    assert np.allclose(gt.T_world_base[2][:3, 3], [0.2, 0.0, 0.0], atol=1e-6)
+    # base = body: ground truth is T_R_B re-anchored at the first image
+    for k in range(4):
+        assert np.allclose(gt.T_world_base[k], expected_anchored(0.05 * k), atol=1e-7), k
+
+
+@pytest.mark.parametrize("kind", ["tum", "euroc"])
+def test_planar_prior_is_off_by_default_for_handheld_and_drone_layouts(tmp_path, caplog, kind):
+    """TUM (hand-held) and EuRoC (drone) have no level, z-up base: the roll/pitch prior is off by
+    default, with a log line; an explicit setting in the config wins."""
+    if kind == "tum":
+        root = tmp_path / "tum"
+        names = _images(root / "rgb", 3)
+        (root / "rgb.txt").write_text("".join(f"{100 + 0.05 * i:.6f} rgb/{n}\n" for i, n in enumerate(names)))
+        extra = {"camera": {"width": 64, "height": 48, "fx": 50, "fy": 50, "cx": 32, "cy": 24}}
+    else:
+        root = _euroc(tmp_path)
+        extra = {}
+    base = {"sequence": str(root), "output": str(tmp_path / "o"), "dataset": kind, **extra}
+    cfg = config_from_dict(dict(base))
+    assert cfg.backend.planar_prior.enabled  # the config's own default
+    with caplog.at_level(logging.INFO, logger="windowvo"):
+        datasets.load(cfg)
+    assert cfg.backend.planar_prior.enabled is False
+    assert any("planar roll/pitch prior is off" in r.getMessage() for r in caplog.records)
+    # other planar-prior keys do not count as a choice about the prior itself
+    cfg = config_from_dict({**base, "backend": {"planar_prior": {"sigma_rad": 0.2}}})
+    datasets.load(cfg)
+    assert cfg.backend.planar_prior.enabled is False and cfg.backend.planar_prior.sigma_rad == 0.2
+    # explicit: the user's setting wins, from the file or from a dotted override
+    caplog.clear()
+    cfg = config_from_dict({**base, "backend": {"planar_prior": {"enabled": True}}})
+    with caplog.at_level(logging.INFO, logger="windowvo"):
+        datasets.load(cfg)
+    assert cfg.backend.planar_prior.enabled is True
+    assert not any("planar roll/pitch prior" in r.getMessage() for r in caplog.records)
+    cfg_path = tmp_path / "c.yaml"
+    cfg_path.write_text(yaml.safe_dump(base))
+    cfg = load_config(cfg_path, ["backend.planar_prior.enabled=true"])
+    datasets.load(cfg)
+    assert cfg.backend.planar_prior.enabled is True
+
+
+def test_planar_prior_stays_on_for_ground_robot_layouts(tmp_path, short_loop):
+    cfg = config_from_dict({"sequence": str(short_loop), "output": str(tmp_path / "o")})
+    datasets.load(cfg)
+    assert cfg.dataset.value == "native" and cfg.backend.planar_prior.enabled is True
+    root = tmp_path / "kitti"
+    _images(root / "image_0", 3)
+    (root / "calib.txt").write_text("P0: 700 0 30 0 0 705 20 0 0 0 1 0\n")
+    (root / "times.txt").write_text("0.0\n0.1\n0.2\n")
+    cfg = config_from_dict({"sequence": str(root), "output": str(tmp_path / "o"), "dataset": "kitti"})
+    datasets.load(cfg)
+    assert cfg.backend.planar_prior.enabled is True
 
 
 def test_folder_and_convert(tmp_path):

@@ -299,8 +299,31 @@ def load(cfg: Config) -> Sequence:
     return finish_sequence(seq, cfg)
 
 
+# Layouts recorded by hand-held cameras (tum) or drones (euroc): their base is not a ground
+# robot's level, z-up base, so the priors that assume one are off unless the config sets them.
+NOT_GROUND_ROBOT = (DatasetKind.TUM, DatasetKind.EUROC)
+
+
+def apply_layout_defaults(cfg: Config) -> list[str]:
+    """Defaults that depend on the layout; an explicit setting in the config always wins.
+
+    Returns the log lines of what changed (also logged at INFO). ``model_fields_set`` holds
+    the keys the config (file or overrides) set, so a default can be told from a choice.
+    """
+    notes: list[str] = []
+    pp = cfg.backend.planar_prior
+    if cfg.dataset in NOT_GROUND_ROBOT and pp.enabled and "enabled" not in pp.model_fields_set:
+        pp.enabled = False
+        notes.append(f"dataset '{cfg.dataset.value}' is hand-held or drone data (no level, z-up base): the planar "
+                     "roll/pitch prior is off; set backend.planar_prior.enabled=true to use it")
+    for note in notes:
+        log.info("%s", note)
+    return notes
+
+
 def finish_sequence(seq: Sequence, cfg: Config) -> Sequence:
-    """Apply config-level options common to every loader (camera override, odometry synthesis)."""
+    """Apply config-level options common to every loader (layout defaults, odometry synthesis)."""
+    apply_layout_defaults(cfg)
     osyn = cfg.odometry_synthesis
     if osyn.enabled and seq.odometry is None:
         if seq.groundtruth is None:
