@@ -3,7 +3,8 @@
 import signal
 import subprocess
 import sys
-import time
+import threading
+from pathlib import Path
 
 import pytest
 from conftest import make_config
@@ -60,35 +61,76 @@ def test_monocular_run_is_up_to_scale(short_loop, tmp_path, capsys):
     assert rep.accuracy.as_dict()["ate_se3_rmse_m"] is None
 
 
+def _with_dropped_frames(src: Path, dst: Path, drop: range) -> int:
+    """A native sequence like ``src`` (images linked, not copied) without the frames in ``drop``.
+
+    The data provider logs the timestamp gap when it reaches the next frame, which happens inside
+    the pipeline's frame loop: a line on stderr that proves the run is processing frames.
+    Returns the number of frames kept.
+    """
+    (dst / "images").mkdir(parents=True)
+    images = sorted((src / "images").iterdir())
+    times = [ln for ln in (src / "times.txt").read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+    assert len(times) == len(images)
+    keep = [i for i in range(len(images)) if i not in drop]
+    for i in keep:
+        (dst / "images" / images[i].name).symlink_to(images[i])
+    (dst / "times.txt").write_text("\n".join(times[i] for i in keep) + "\n")
+    for name in ("camera.yaml", "odometry.csv", "groundtruth.txt"):
+        if (src / name).is_file():
+            (dst / name).symlink_to(src / name)
+    return len(keep)
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_interruption_keeps_results(seq_factory, tmp_path, sig):
-    seq = seq_factory("loop", **CASES["loop"])
+    """Signal a run in its frame loop: exit 130, no traceback, every processed frame written.
+
+    Deterministic: the signal is sent only after the run logged the timestamp gap before frame 12
+    (so it is inside the frame loop, with its handlers installed), and about 580 frames are still
+    to come then, seconds of work, so the run cannot finish first.
+    """
+    seq = tmp_path / "seq"
+    n_frames = _with_dropped_frames(seq_factory("loop", **CASES["loop"]), seq, range(8, 12))
     cfg = tmp_path / "c.yaml"
     cfg.write_text(f"sequence: {seq}\noutput: {tmp_path / 'out'}\nprogress: false\nviz:\n  image_every: 1\n")
-    p = subprocess.Popen([sys.executable, "-m", "windowvo.run", str(cfg)], stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    stats = tmp_path / "out"
-    rrd = stats / "recording.rrd"
-    deadline = time.time() + 120
-    # wait until the run is well under way (the recording grows as frames are processed)
-    while time.time() < deadline and p.poll() is None:
-        if rrd.is_file() and rrd.stat().st_size > 3_000_000:
-            break
-        time.sleep(0.05)
-    p.send_signal(sig)
-    _out, err = p.communicate(timeout=120)
-    if p.returncode == 0:
-        pytest.skip("the run finished before the signal arrived")
+    stdout = (tmp_path / "stdout.txt").open("w")
+    p = subprocess.Popen([sys.executable, "-m", "windowvo.run", str(cfg)], stdout=stdout, stderr=subprocess.PIPE,
+                         text=True)
+    lines: list[str] = []
+    in_loop = threading.Event()
+
+    def pump() -> None:
+        assert p.stderr is not None
+        for line in p.stderr:
+            lines.append(line)
+            if "timestamp gap" in line:
+                in_loop.set()
+
+    reader = threading.Thread(target=pump, daemon=True)
+    reader.start()
+    try:
+        assert in_loop.wait(timeout=300), "no timestamp-gap line on stderr:\n" + "".join(lines)
+        p.send_signal(sig)
+        p.wait(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+        reader.join(timeout=30)
+        stdout.close()
+    err = "".join(lines)
     assert p.returncode == 130, err
     assert "Traceback" not in err
-    assert "interrupted" in err
-    traj = read_tum(stats / "trajectory.txt")
-    rows = (stats / "stats.csv").read_text().splitlines()
-    assert 0 < len(traj) == len(rows) - 1
+    assert "interrupted after frame" in err
+    assert "[interrupted]" in (tmp_path / "stdout.txt").read_text()
+    out = tmp_path / "out"
+    traj = read_tum(out / "trajectory.txt")
+    rows = (out / "stats.csv").read_text().splitlines()
+    assert 8 < len(traj) == len(rows) - 1 < n_frames  # stopped in the loop, after the gap
     # the recording is valid and holds every processed frame
     from rerun.chunk import RrdReader
 
-    images = sum(ch.num_rows for ch in RrdReader(str(rrd)).stream()
+    images = sum(ch.num_rows for ch in RrdReader(str(out / "recording.rrd")).stream()
                  if str(ch.entity_path) == "/world/estimate/base/cam/image")
     assert images == len(traj)
 
