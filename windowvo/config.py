@@ -63,6 +63,10 @@ class FrontendConfig(_Section):
     ransac_confidence: float = Field(0.999, gt=0.5, lt=1)
     clahe: bool = False
     gain_normalization: bool = True
+    gain_target: float = Field(110.0, gt=0, le=255, description="mean grey level that gain normalisation "
+                               "scales every frame to")
+    max_ray_angle_deg: float = Field(75.0, gt=0, lt=90, description="field-of-view bound: image regions and "
+                                     "tracks whose ray is further off the optical axis are not used")
     mask: Path | None = None
     mask_folder: Path | None = None
     border_px: int = Field(8, ge=0)

@@ -71,6 +71,9 @@ class FrontendOutput:
     n_detected: int = 0
     frontend_ms: float = 0.0
     standstill: bool = False
+    # (N,) how much 1 px of image noise is stretched in pixels_undistorted at each track (largest
+    # singular value of the undistortion Jacobian; 1 for a pinhole). None: not computed (all 1).
+    pixel_sigma_scale: np.ndarray | None = None
 
 
 class BackendStatus(str, enum.Enum):

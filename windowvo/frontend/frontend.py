@@ -3,6 +3,13 @@
 Per frame: track features (persistent ids), undistort them, reject outliers with an
 essential-matrix RANSAC against the last keyframe (rejected tracks end), measure parallax,
 decide whether this frame is a keyframe, and run the quality gates on keyframe candidates.
+
+Lenses: tracks are measured in the distorted image and handed on as the pixels an ideal
+pinhole camera with the same K would see. A ray far off the optical axis maps to huge
+pinhole coordinates (and at 90 degrees or more, a fisheye's, to none), so the image region
+beyond ``frontend.max_ray_angle_deg`` is masked out: no detections there, and tracks that
+move into it end. Each observation carries ``pixel_sigma_scale``, how much the undistortion
+stretches one pixel of image noise at that point.
 """
 
 from __future__ import annotations
@@ -16,7 +23,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import FrontendConfig, GateConfig, KeyframeConfig, TrackerKind
 from ..types import Frame, FrontendOutput, GateOutcome, KeyframeReason
-from .tracker import KLTTracker, ORBTracker
+from .tracker import KLTTracker, ORBTracker, cell_counts
 
 
 @dataclass
@@ -101,6 +108,29 @@ def two_view_geometry(xn_kf: np.ndarray, xn_cur: np.ndarray, focal: float, thres
     return recover_relative_pose(essential_ransac(xn_kf, xn_cur, focal, threshold_px, confidence), xn_kf, xn_cur, focal)
 
 
+def field_of_view_mask(camera: CameraModel, max_ray_angle_deg: float) -> np.ndarray | None:
+    """uint8 mask, 255 where the pixel's ray lies within ``max_ray_angle_deg`` of the optical axis.
+
+    None when every pixel does (a normal lens with a moderate field of view).
+    """
+    angle = camera.ray_angle(camera.pixel_grid()).reshape(camera.height, camera.width)
+    inside = angle <= np.radians(max_ray_angle_deg)
+    if inside.all():
+        return None
+    return np.where(inside, 255, 0).astype(np.uint8)
+
+
+def pixel_sigma_scale(camera: CameraModel, pixels: np.ndarray) -> np.ndarray:
+    """How much one pixel of image noise grows in the undistorted pinhole pixels, per point (N,).
+
+    The largest singular value of the undistortion's Jacobian: 1 for a pinhole camera, about
+    1/cos^2(theta) for a fisheye ray theta off the axis.
+    """
+    if len(pixels) == 0 or not camera.has_distortion:
+        return np.ones(len(pixels))
+    return np.linalg.svd(camera.undistortion_jacobian(pixels), compute_uv=False)[:, 0]
+
+
 class Frontend:
     """Stateful front end; one call to :meth:`process` per frame."""
 
@@ -116,13 +146,15 @@ class Frontend:
         self.cfg = cfg
         self.kf_cfg = kf_cfg
         self.gate_cfg = gate_cfg
-        self.tracker = ORBTracker(cfg) if cfg.tracker is TrackerKind.ORB else KLTTracker(cfg)
+        self.tracker: KLTTracker | ORBTracker = ORBTracker(cfg) if cfg.tracker is TrackerKind.ORB else KLTTracker(cfg)
+        fov = field_of_view_mask(camera, cfg.max_ray_angle_deg)
+        if fov is not None:
+            static_mask = fov if static_mask is None else np.minimum(static_mask, fov)
         self.static_mask = static_mask
         self.clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if cfg.clahe else None
         self.kf_ids: np.ndarray | None = None
         self.kf_xn: np.ndarray | None = None
         self.kf_time = 0.0
-        self.kf_count = 0
         self.focal = 0.5 * (camera.fx + camera.fy)
 
     def _mask(self, frame: Frame) -> np.ndarray | None:
@@ -135,10 +167,8 @@ class Frontend:
         """Share of grid cells that hold at least one feature."""
         if len(pixels) == 0:
             return 0.0
-        cols, rows = self.cfg.grid_cols, self.cfg.grid_rows
-        cx = np.clip((pixels[:, 0] * cols / self.camera.width).astype(int), 0, cols - 1)
-        cy = np.clip((pixels[:, 1] * rows / self.camera.height).astype(int), 0, rows - 1)
-        return float(len(set(zip(cx.tolist(), cy.tolist())))) / (cols * rows)
+        counts = cell_counts(pixels, (self.camera.height, self.camera.width), self.cfg.grid_cols, self.cfg.grid_rows)
+        return float(np.count_nonzero(counts)) / counts.size
 
     def process(self, frame: Frame, odom_motion: tuple[float, float] | None = None, force_keyframe: bool = False) -> FrontendOutput:
         """Track one frame. ``odom_motion`` is (distance m, |yaw| rad) since the last keyframe."""
@@ -151,9 +181,16 @@ class Frontend:
             # constancy: scale every frame to the same mean intensity.
             mean = float(cv2.mean(image)[0])
             if mean > 1.0:
-                image = cv2.convertScaleAbs(image, alpha=110.0 / mean)
+                image = cv2.convertScaleAbs(image, alpha=self.cfg.gain_target / mean)
         tracks = self.tracker.track(image, self._mask(frame))
         xn = self.camera.undistort_normalized(tracks.pixels)
+        beyond = ~np.all(np.isfinite(xn), axis=1)
+        if beyond.any():
+            # Sub-pixel positions just past the field-of-view mask's edge (rays at 90 degrees
+            # or more have no pinhole coordinates): end those tracks.
+            self.tracker.drop(tracks.ids[beyond])
+            tracks.ids, tracks.pixels, tracks.ages = tracks.ids[~beyond], tracks.pixels[~beyond], tracks.ages[~beyond]
+            xn = xn[~beyond]
         out_pixels = np.zeros((0, 2))
         parallax = 0.0
         two_view = None
@@ -189,6 +226,7 @@ class Frontend:
             parallax_px=parallax,
             n_detected=tracks.n_detected,
             spread=self.spread(tracks.pixels),
+            pixel_sigma_scale=pixel_sigma_scale(self.camera, tracks.pixels),
         )
         if two_view is not None:
             out.inlier_ratio = float(two_view.inlier_mask.mean())
@@ -206,7 +244,6 @@ class Frontend:
             self.kf_ids = out.track_ids.copy()
             self.kf_xn = xn.copy()
             self.kf_time = frame.timestamp
-            self.kf_count += 1
         out.frontend_ms = (time.perf_counter() - t0) * 1000.0
         return out
 

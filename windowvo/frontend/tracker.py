@@ -7,7 +7,6 @@ persistent id, and keep each live track's full pixel history.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
 
 import cv2
 import numpy as np
@@ -23,16 +22,6 @@ class TrackSet:
     pixels: np.ndarray  # (N, 2) float32
     ages: np.ndarray  # (N,) int32
     n_detected: int = 0
-
-
-class Tracker(Protocol):
-    def track(self, image: np.ndarray, mask: np.ndarray | None) -> TrackSet: ...
-
-    def drop(self, ids: np.ndarray) -> None: ...
-
-    def history(self, track_id: int, last: int | None = None) -> list[tuple[int, float, float]]: ...
-
-    def tail_starts(self, ids: np.ndarray, n: int) -> np.ndarray: ...
 
 
 class _History:
@@ -78,6 +67,23 @@ class _History:
         return out[::-1]
 
 
+def grid_cells(pixels: np.ndarray, shape: tuple[int, int], cols: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """Grid cell (row, column) of each pixel (N,2) in an image of ``shape`` (h, w) cut into rows x cols."""
+    h, w = shape
+    pixels = np.asarray(pixels).reshape(-1, 2)
+    cx = np.clip((pixels[:, 0] * cols / w).astype(int), 0, cols - 1)
+    cy = np.clip((pixels[:, 1] * rows / h).astype(int), 0, rows - 1)
+    return cy, cx
+
+
+def cell_counts(pixels: np.ndarray, shape: tuple[int, int], cols: int, rows: int) -> np.ndarray:
+    """Number of pixels in each grid cell, (rows, cols)."""
+    counts = np.zeros((rows, cols), np.int32)
+    if len(pixels):
+        np.add.at(counts, grid_cells(pixels, shape, cols, rows), 1)
+    return counts
+
+
 def grid_select(
     candidates: np.ndarray,
     existing: np.ndarray,
@@ -88,17 +94,11 @@ def grid_select(
     per_cell: int,
 ) -> np.ndarray:
     """Pick candidates (sorted best first) into under-filled grid cells; returns their indices."""
-    h, w = shape
-    counts = np.zeros((rows, cols), np.int32)
-    if len(existing):
-        cx = np.clip((existing[:, 0] * cols / w).astype(int), 0, cols - 1)
-        cy = np.clip((existing[:, 1] * rows / h).astype(int), 0, rows - 1)
-        np.add.at(counts, (cy, cx), 1)
-    chosen = []
     if len(candidates) == 0 or budget <= 0:
         return np.zeros(0, np.int64)
-    ccx = np.clip((candidates[:, 0] * cols / w).astype(int), 0, cols - 1)
-    ccy = np.clip((candidates[:, 1] * rows / h).astype(int), 0, rows - 1)
+    counts = cell_counts(existing, shape, cols, rows)
+    ccy, ccx = grid_cells(candidates, shape, cols, rows)
+    chosen = []
     for k in range(len(candidates)):
         if counts[ccy[k], ccx[k]] < per_cell:
             counts[ccy[k], ccx[k]] += 1
@@ -108,8 +108,8 @@ def grid_select(
     return np.asarray(chosen, np.int64)
 
 
-class KLTTracker:
-    """Shi-Tomasi corners on a grid, tracked with pyramidal Lucas-Kanade and a forward-backward check."""
+class _TrackStore:
+    """Live tracks (ids, pixels, ages) and their pixel history, shared by both trackers."""
 
     def __init__(self, cfg: FrontendConfig):
         self.cfg = cfg
@@ -117,12 +117,8 @@ class KLTTracker:
         self.pts = np.zeros((0, 2), np.float32)
         self.ages = np.zeros(0, np.int32)
         self.next_id = 0
-        self.prev_pyr = None
         self.frame = -1
         self._hist = _History()
-        win = (cfg.klt_window_px, cfg.klt_window_px)
-        self.lk = dict(winSize=win, maxLevel=cfg.klt_levels,
-                       criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
 
     def history(self, track_id: int, last: int | None = None) -> list[tuple[int, float, float]]:
         """Pixel positions (frame, u, v) of a live track, oldest first (the last ``last`` only)."""
@@ -132,11 +128,24 @@ class KLTTracker:
         """Where each track was ``n`` frames ago (or at its birth, if younger), (N, 2)."""
         return self._hist.positions_ago(np.asarray(ids), n)
 
-    def drop(self, ids: np.ndarray) -> None:
-        if len(ids) == 0:
-            return
-        keep = ~np.isin(self.ids, ids)
+    def _keep(self, keep: np.ndarray) -> None:
         self.ids, self.pts, self.ages = self.ids[keep], self.pts[keep], self.ages[keep]
+
+    def drop(self, ids: np.ndarray) -> None:
+        """End the tracks ``ids`` (RANSAC outliers, rays outside the field of view)."""
+        if len(ids):
+            self._keep(~np.isin(self.ids, ids))
+
+
+class KLTTracker(_TrackStore):
+    """Shi-Tomasi corners on a grid, tracked with pyramidal Lucas-Kanade and a forward-backward check."""
+
+    def __init__(self, cfg: FrontendConfig):
+        super().__init__(cfg)
+        self.prev_pyr: np.ndarray | None = None
+        win = (cfg.klt_window_px, cfg.klt_window_px)
+        self.lk = dict(winSize=win, maxLevel=cfg.klt_levels,
+                       criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
 
     def track(self, image: np.ndarray, mask: np.ndarray | None = None) -> TrackSet:
         self.frame += 1
@@ -175,11 +184,7 @@ class KLTTracker:
         h, w = image.shape[:2]
         cols, rows = cfg.grid_cols, cfg.grid_rows
         per_cell = int(np.ceil(cfg.max_features / (cols * rows)))
-        counts = np.zeros((rows, cols), np.int32)
-        if len(self.pts):
-            cx = np.clip((self.pts[:, 0] * cols / w).astype(int), 0, cols - 1)
-            cy = np.clip((self.pts[:, 1] * rows / h).astype(int), 0, rows - 1)
-            np.add.at(counts, (cy, cx), 1)
+        counts = cell_counts(self.pts, (h, w), cols, rows)
         xs = np.linspace(0, w, cols + 1).astype(int)
         ys = np.linspace(0, h, rows + 1).astype(int)
         out = []
@@ -233,32 +238,17 @@ class KLTTracker:
         return len(new_pts)
 
 
-class ORBTracker:
+class ORBTracker(_TrackStore):
     """The textbook alternative: ORB keypoints matched frame to frame (Hamming, ratio test)."""
 
     def __init__(self, cfg: FrontendConfig):
-        self.cfg = cfg
+        super().__init__(cfg)
         self.orb = cv2.ORB_create(nfeatures=int(cfg.max_features * 2), fastThreshold=10)
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-        self.ids = np.zeros(0, np.int64)
-        self.pts = np.zeros((0, 2), np.float32)
-        self.ages = np.zeros(0, np.int32)
         self.desc: np.ndarray | None = None
-        self.next_id = 0
-        self.frame = -1
-        self._hist = _History()
 
-    def history(self, track_id: int, last: int | None = None) -> list[tuple[int, float, float]]:
-        """Pixel positions (frame, u, v) of a live track, oldest first (the last ``last`` only)."""
-        return self._hist.get(int(track_id), last)
-
-    def tail_starts(self, ids: np.ndarray, n: int) -> np.ndarray:
-        """Where each track was ``n`` frames ago (or at its birth, if younger), (N, 2)."""
-        return self._hist.positions_ago(np.asarray(ids), n)
-
-    def drop(self, ids: np.ndarray) -> None:
-        keep = ~np.isin(self.ids, ids)
-        self.ids, self.pts, self.ages = self.ids[keep], self.pts[keep], self.ages[keep]
+    def _keep(self, keep: np.ndarray) -> None:
+        super()._keep(keep)
         if self.desc is not None:
             self.desc = self.desc[keep]
 

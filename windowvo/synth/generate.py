@@ -13,7 +13,8 @@ import cv2
 import numpy as np
 
 from ..camera import CameraModel, DistortionModel
-from ..geometry import R_BASE_CAM_FORWARD, inv_T, make_T, rot_x, rot_y
+from ..geometry import R_BASE_CAM_FORWARD, make_T, rot_x, rot_y
+from ..io.datasets import integrate_wheel_odometry
 from ..io.odometry import WheelOdometry, write_odometry_csv
 from ..io.sequence import write_camera_yaml
 from ..io.trajectory import write_tum
@@ -162,39 +163,20 @@ def build_world(spec: SynthSpec) -> SyntheticWorld:
 
 def simulate_wheel_odometry(world: SyntheticWorld, err: WheelErrorModel, seed: int, label: str) -> WheelOdometry:
     """Integrate noisy planar increments of the true base motion (what wheel encoders see)."""
-    rng = np.random.default_rng(seed + 7919)
-    dur = world.planar.duration
-    ts = np.arange(0.0, dur + 1e-9, 1.0 / err.rate_hz)
-    x = np.zeros(len(ts))
-    y = np.zeros(len(ts))
-    yaw = np.zeros(len(ts))
-    T_prev = world.T_world_base(ts[0])
-    for i in range(1, len(ts)):
-        T = world.T_world_base(ts[i])
-        d = inv_T(T_prev) @ T
-        T_prev = T
-        ds = float(np.hypot(d[0, 3], d[1, 3])) * np.sign(d[0, 3] if abs(d[0, 3]) > 1e-12 else 1.0)
-        dyaw = float(np.arctan2(d[1, 0], d[0, 0]))
-        # Only the heading change of the planar motion: remove roll/pitch vibration effects.
-        yaw_true_prev = float(world.planar.at(ts[i - 1])[2])
-        yaw_true = float(world.planar.at(ts[i])[2])
-        dyaw = yaw_true - yaw_true_prev
-        factor = 1.0 + err.scale_error
-        for t0, t1, extra in err.slip_windows:
-            if t0 <= ts[i] <= t1:
-                factor *= 1.0 + extra
-        dist = abs(ds)
-        ds_m = ds * factor + err.distance_noise * np.sqrt(dist) * rng.standard_normal()
-        dyaw_m = dyaw + err.yaw_bias_per_m * dist + err.yaw_noise * np.sqrt(dist) * rng.standard_normal()
-        mid = yaw[i - 1] + 0.5 * dyaw_m
-        x[i] = x[i - 1] + ds_m * np.cos(mid)
-        y[i] = y[i - 1] + ds_m * np.sin(mid)
-        yaw[i] = yaw[i - 1] + dyaw_m
+    ts = np.arange(0.0, world.planar.duration + 1e-9, 1.0 / err.rate_hz)
+    T = np.stack([world.T_world_base(t) for t in ts])
+    d = np.einsum("nji,nj->ni", T[:-1, :3, :3], T[1:, :3, 3] - T[:-1, :3, 3])  # step in the previous base frame
+    ds = np.concatenate([[0.0], np.hypot(d[:, 0], d[:, 1]) * np.where(np.abs(d[:, 0]) > 1e-12, np.sign(d[:, 0]), 1.0)])
+    # Heading change of the planar path only: roll/pitch vibration does not turn the wheels.
+    dyaw = np.concatenate([[0.0], np.diff(world.planar.at(ts)[2])])
     comment = (
         f"{label} wheel odometry: scale_error={err.scale_error}, yaw_bias_per_m={err.yaw_bias_per_m}, "
         f"distance_noise={err.distance_noise}, yaw_noise={err.yaw_noise}, slip_windows={err.slip_windows}"
     )
-    return WheelOdometry(ts, x, y, yaw, comment=comment)
+    return integrate_wheel_odometry(ts, ds, dyaw, scale_error=err.scale_error, yaw_bias_per_m=err.yaw_bias_per_m,
+                                    distance_noise=err.distance_noise, yaw_noise=err.yaw_noise,
+                                    rng=np.random.default_rng(seed + 7919), slip_windows=err.slip_windows,
+                                    comment=comment)
 
 
 def frame_gain(spec: SynthSpec, i: int, rng: np.random.Generator) -> float:

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..camera import CameraModel, DistortionModel
 from ..geometry import inv_T
 
 TEXEL_M = 0.005  # texture resolution: one texel is 5 mm
@@ -285,32 +286,48 @@ def raycast(planes: list[Plane], origin: np.ndarray, dirs: np.ndarray, near: flo
 
 
 class Renderer:
-    """Renders grey images of a scene for a fixed camera model (distortion included).
+    """Renders grey images of a scene for a fixed camera model (lens distortion included).
 
-    Planes are rasterised one at a time over the pixel block their clipped outline can
-    cover, with a depth buffer; the cost follows the covered area, not planes x pixels.
+    Each pixel casts the undistorted ray through its centre. Pinhole and radtan cameras use
+    rays with z = 1; the equidistant (fisheye) model uses unit bearing vectors, so a lens
+    wider than 180 degrees sees beside and behind its own lens plane.
+
+    Planes are rasterised one at a time over the pixel block their outline can cover, with
+    a depth buffer; the cost follows the covered area, not planes x pixels.
     """
 
-    def __init__(self, scene: Scene, camera, seed: int = 0):
+    def __init__(self, scene: Scene, camera: CameraModel, seed: int = 0):
         self.scene = scene
         self.camera = camera
         H, W = camera.height, camera.width
         self.shape = (H, W)
-        self.rays_cam = camera.pixel_rays().astype(np.float32).reshape(H, W, 3)  # z = 1
+        self.wide = camera.distortion_model is DistortionModel.EQUIDISTANT
+        bearings = camera.pixel_bearings()
+        rays = bearings if self.wide else bearings / bearings[:, 2:3]
+        self.rays_cam = rays.astype(np.float32).reshape(H, W, 3)
+        self.ray_len = np.sqrt((self.rays_cam * self.rays_cam).sum(axis=2))
+        self.theta_max = float(np.arccos(np.clip(bearings[:, 2].min(), -1.0, 1.0)))  # widest ray of any pixel
         xn, yn = self.rays_cam[..., 0], self.rays_cam[..., 1]
-        # Conservative normalised-coordinate range of each pixel column and row.
+        # Conservative normalised-coordinate range of each pixel column and row (z = 1 rays).
         self.col_x = (xn.min(axis=0), xn.max(axis=0))
         self.row_y = (yn.min(axis=1), yn.max(axis=1))
         self.atlas = MipAtlas(make_texture(scene.texture_seed))
         self.base_footprint = np.float32(1.0 / camera.fx)
 
+    def _outline(self, plane: Plane, T_cam_world: np.ndarray, per_edge: int) -> np.ndarray:
+        """Points densely sampled along the plane's border, in the camera frame."""
+        c = plane.corners()
+        edge = np.linspace(0.0, 1.0, per_edge + 1)[:-1, None]
+        outline = np.concatenate([c[i] + edge * (c[(i + 1) % 4] - c[i]) for i in range(4)])
+        return outline @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+
     def _block(self, plane: Plane, T_cam_world: np.ndarray, near: float):
         """Row and column slices of the image the plane can cover, or None."""
-        c = plane.corners()
-        # Sample the outline densely, then clip it against z >= near in the camera frame.
-        edge = np.linspace(0.0, 1.0, 9)[:-1, None]
-        outline = np.concatenate([c[i] + edge * (c[(i + 1) % 4] - c[i]) for i in range(4)])
-        pc = outline @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        return self._block_wide(plane, T_cam_world) if self.wide else self._block_pinhole(plane, T_cam_world, near)
+
+    def _block_pinhole(self, plane: Plane, T_cam_world: np.ndarray, near: float):
+        # Clip the outline against z >= near, then bound it in normalised coordinates.
+        pc = self._outline(plane, T_cam_world, 8)
         z = pc[:, 2]
         if np.all(z < near):
             return None
@@ -333,15 +350,54 @@ class Renderer:
             return None
         return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
 
+    def _wide_outline_pixels(self, pc: np.ndarray) -> np.ndarray:
+        """Fisheye pixels of camera-frame points, continued monotonically past the widest pixel ray.
+
+        Within the image's field of view this is the lens projection; beyond it the radius
+        keeps growing with the off-axis angle, so a lens polynomial that folds back outside
+        its calibrated range cannot pull points from behind the camera into the image.
+        """
+        cam = self.camera
+        r = np.hypot(pc[:, 0], pc[:, 1])
+        theta = np.arctan2(r, pc[:, 2])
+        inside = theta <= self.theta_max
+        theta_d = np.where(inside, cam._equidistant_theta_d(np.minimum(theta, self.theta_max)),
+                           cam._equidistant_theta_d(np.array(self.theta_max)) + (theta - self.theta_max))
+        scale = theta_d / np.maximum(r, 1e-15)
+        return np.stack([cam.fx * pc[:, 0] * scale + cam.cx, cam.fy * pc[:, 1] * scale + cam.cy], axis=1)
+
+    def _block_wide(self, plane: Plane, T_cam_world: np.ndarray):
+        # The fisheye maps every direction but the one straight behind the lens continuously
+        # into the image plane, so a rectangle's image lies inside its projected outline.
+        # A rectangle that holds that backward direction wraps around the image: take all.
+        H, W = self.shape
+        full = slice(0, H), slice(0, W)
+        pc = self._outline(plane, T_cam_world, 48)
+        T_world_cam = inv_T(T_cam_world)
+        back_hit, _, _, _ = raycast([plane], T_world_cam[:3, 3], -T_world_cam[:3, 2][None, :], near=0.0)
+        if np.isfinite(back_hit[0]):
+            return full
+        uv = self._wide_outline_pixels(pc)
+        margin = 2.0
+        c0, c1 = np.floor(uv[:, 0].min() - margin), np.ceil(uv[:, 0].max() + margin)
+        r0, r1 = np.floor(uv[:, 1].min() - margin), np.ceil(uv[:, 1].max() + margin)
+        if c1 < 0 or r1 < 0 or c0 > W - 1 or r0 > H - 1:
+            return None
+        return slice(int(max(r0, 0)), int(min(r1, H - 1)) + 1), slice(int(max(c0, 0)), int(min(c1, W - 1)) + 1)
+
     def render(self, T_world_cam: np.ndarray, t: float, gain: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-        """Image (float32 0..1) and depth (z in camera, inf where empty) seen from ``T_world_cam``."""
+        """Image (float32 0..1) and range seen from ``T_world_cam``.
+
+        The range is the distance (m) from the camera centre to the surface along each pixel's
+        ray (inf where nothing is hit); it is defined for every lens, fisheye included.
+        """
         planes = self.scene.planes_at(t)
         H, W = self.shape
         near = 0.05
         T_cam_world = inv_T(T_world_cam)
         R = T_world_cam[:3, :3].astype(np.float32)
         cam_o = T_world_cam[:3, 3]
-        zbuf = np.full((H, W), np.inf, np.float32)
+        tbuf = np.full((H, W), np.inf, np.float32)  # ray parameter of the nearest hit
         s_tex = np.zeros((H, W), np.float32)
         t_tex = np.zeros((H, W), np.float32)
         cosb = np.ones((H, W), np.float32)
@@ -362,35 +418,32 @@ class Renderer:
             b_c = (R.T @ p.axis_v.astype(np.float32))
             dn = rays @ n_c
             with np.errstate(divide="ignore", invalid="ignore"):
-                depth = np.float32(num) / dn
+                t_ray = np.float32(num) / dn
             rel = (cam_o - p.origin)
-            u = np.float32(rel @ p.axis_u) + depth * (rays @ a_c)
-            v = np.float32(rel @ p.axis_v) + depth * (rays @ b_c)
-            zb = zbuf[rs, cs]
-            ok = (depth > near) & (depth < zb) & (u >= 0) & (u <= p.length_u) & (v >= 0) & (v <= p.length_v)
+            u = np.float32(rel @ p.axis_u) + t_ray * (rays @ a_c)
+            v = np.float32(rel @ p.axis_v) + t_ray * (rays @ b_c)
+            tb = tbuf[rs, cs]
+            ok = (t_ray > near) & (t_ray < tb) & (u >= 0) & (u <= p.length_u) & (v >= 0) & (v <= p.length_v)
             if not ok.any():
                 continue
-            zb[ok] = depth[ok]
+            tb[ok] = t_ray[ok]
             s_tex[rs, cs][ok] = (u[ok] + p.tex_offset[0]) / TEXEL_M
             t_tex[rs, cs][ok] = (v[ok] + p.tex_offset[1]) / TEXEL_M
             cosb[rs, cs][ok] = np.abs(dn[ok]) / np.linalg.norm(rays[ok], axis=1)
             bright[rs, cs][ok] = p.brightness
-        hit = np.isfinite(zbuf)
-        dsafe = np.where(hit, zbuf, 1.0)
-        ray_len = np.sqrt((self.rays_cam * self.rays_cam).sum(axis=2))
-        footprint = dsafe * ray_len * self.base_footprint / np.sqrt(np.maximum(cosb, 0.05))
+        hit = np.isfinite(tbuf)
+        range_m = tbuf * self.ray_len  # ray parameter -> metres along the ray
+        footprint = np.where(hit, range_m, 1.0) * self.base_footprint / np.sqrt(np.maximum(cosb, 0.05))
         level = np.clip(np.log2(np.maximum(footprint / TEXEL_M, 1e-6)), 0.0, MIP_LEVELS - 1.001).astype(np.float32)
         img = self.atlas.sample(s_tex.ravel(), t_tex.ravel(), level.ravel(), self.shape)
         img *= bright
         img[~hit] = 0.05
         img *= gain
-        return img, zbuf
+        return img, range_m
 
     def surface_points(self, T_world_cam: np.ndarray, uv: np.ndarray, t: float) -> np.ndarray:
         """World points (N,3) seen at pixels ``uv`` (nan where no surface)."""
-        rays = self.camera.unproject(uv)
-        rays = rays / rays[:, 2:3]
-        dirs = rays @ T_world_cam[:3, :3].T
+        dirs = self.camera.unproject(uv) @ T_world_cam[:3, :3].T  # unit bearings: any lens
         depth, _, _, _ = raycast(self.scene.planes_at(t), T_world_cam[:3, 3], dirs)
         p = T_world_cam[:3, 3][None, :] + depth[:, None] * dirs
         p[~np.isfinite(depth)] = np.nan
