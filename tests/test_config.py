@@ -3,7 +3,9 @@ import sys
 from pathlib import Path
 
 import pytest
+from pydantic import Field, create_model
 
+from windowvo import config_doc
 from windowvo.config import RerunMode, TrackerKind, load_config
 from windowvo.errors import ConfigError
 
@@ -88,3 +90,49 @@ def test_output_that_is_a_file_is_one_line_and_exit_2(tmp_path, where):
     assert len(lines) == 1 and lines[0].startswith("windowvo: error: output '")
     assert ("is an existing file" if where == "output_is_file" else "is a file, not a folder") in lines[0]
     assert blocker.read_text() == "not a folder\n"
+
+
+# ---------------------------------------------------------------------------- config reference
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def test_every_config_key_has_a_description():
+    missing = config_doc.missing_descriptions()
+    assert missing == [], f"add Field(..., description=...) in windowvo/config.py for: {missing}"
+
+
+def test_readme_config_reference_is_the_generated_one():
+    """The README's reference is exactly what the config models generate: a key added, removed or
+    re-described without regenerating fails here."""
+    in_readme = config_doc.reference_in(README.read_text())
+    assert in_readme == config_doc.generate_reference(), f"stale config reference: run {config_doc.REGENERATE}"
+    for k in config_doc.iter_keys():
+        assert f"`{k.key}`" in in_readme
+
+
+def test_reference_generator_catches_undescribed_keys():
+    inner = create_model("Inner", documented=(int, Field(1, description="has one")), bare=(int, 2))
+    outer = create_model("Outer", sub=(inner, Field(inner(), description="a section")),
+                         top=(float, Field(1.5, description="a number")), loose=(inner, inner()))
+    assert config_doc.missing_descriptions(outer) == ["sub.bare", "loose", "loose.bare"]
+    with pytest.raises(ConfigError, match=r"sub\.bare"):
+        config_doc.generate_reference(outer)
+    keys = {k.key: k for k in config_doc.iter_keys(outer)}
+    assert keys["top"].default == "`1.5`" and keys["sub"].is_section and keys["sub.documented"].type == "int"
+
+
+def test_reference_command_line_check_and_write(tmp_path):
+    doc = tmp_path / "DOC.md"
+    doc.write_text(f"intro\n{config_doc.START}\n| old | table |\n{config_doc.END}\noutro\n")
+    run = [sys.executable, "-m", "windowvo.config_doc"]
+    stale = subprocess.run([*run, "--check", str(doc)], capture_output=True, text=True, timeout=120)
+    assert stale.returncode == 1 and "stale config reference" in stale.stderr
+    assert subprocess.run([*run, "--write", str(doc)], capture_output=True, text=True, timeout=120).returncode == 0
+    text = doc.read_text()
+    assert text.startswith("intro\n") and text.endswith(f"{config_doc.END}\noutro\n")
+    assert config_doc.reference_in(text) == config_doc.generate_reference()
+    assert subprocess.run([*run, "--check", str(doc)], capture_output=True, text=True, timeout=120).returncode == 0
+    (tmp_path / "none.md").write_text("no markers\n")
+    bad = subprocess.run([*run, "--write", str(tmp_path / "none.md")], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr and "config-reference:start" in bad.stderr

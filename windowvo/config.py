@@ -49,111 +49,142 @@ class RerunMode(str, enum.Enum):
 
 
 class FrontendConfig(_Section):
-    tracker: TrackerKind = TrackerKind.KLT
-    max_features: int = Field(200, gt=8, le=5000)
-    grid_cols: int = Field(8, ge=1, le=64)
-    grid_rows: int = Field(6, ge=1, le=64)
-    min_distance_px: float = Field(12.0, gt=0)
-    quality_level: float = Field(0.01, gt=0, lt=1)
-    klt_window_px: int = Field(9, ge=5, le=101)
-    klt_levels: int = Field(3, ge=0, le=8)
-    forward_backward_px: float = Field(0.5, gt=0)
-    klt_max_residual: float = Field(8.0, gt=0)  # mean abs grey difference of the tracked patch
-    ransac_threshold_px: float = Field(0.5, gt=0)
-    ransac_confidence: float = Field(0.999, gt=0.5, lt=1)
-    clahe: bool = False
-    gain_normalization: bool = True
+    tracker: TrackerKind = Field(TrackerKind.KLT, description="feature tracker: klt (optical flow, persistent track "
+                                                              "ids) or orb (descriptor matching)")
+    max_features: int = Field(200, gt=8, le=5000, description="live tracks kept")
+    grid_cols: int = Field(8, ge=1, le=64, description="detection grid columns (new corners only in cells short of "
+                                                       "tracks)")
+    grid_rows: int = Field(6, ge=1, le=64, description="detection grid rows")
+    min_distance_px: float = Field(12.0, gt=0, description="minimum distance between two corners")
+    quality_level: float = Field(0.01, gt=0, lt=1, description="Shi-Tomasi corner quality, relative to the best corner "
+                                                               "of the cell")
+    klt_window_px: int = Field(9, ge=5, le=101, description="KLT window size")
+    klt_levels: int = Field(3, ge=0, le=8, description="KLT pyramid levels")
+    forward_backward_px: float = Field(0.5, gt=0, description="max forward-backward KLT error; tracks above it end")
+    klt_max_residual: float = Field(8.0, gt=0, description="max KLT patch residual (mean absolute grey difference); "
+                                                           "ends tracks on deforming patches")
+    ransac_threshold_px: float = Field(0.5, gt=0, description="essential-matrix RANSAC threshold")
+    ransac_confidence: float = Field(0.999, gt=0.5, lt=1, description="essential-matrix RANSAC confidence")
+    clahe: bool = Field(False, description="contrast-limited histogram equalisation before tracking (dim scenes)")
+    gain_normalization: bool = Field(True, description="scale every frame to one mean intensity before tracking "
+                                                       "(exposure steps)")
     gain_target: float = Field(110.0, gt=0, le=255, description="mean grey level that gain normalisation "
                                "scales every frame to")
     max_ray_angle_deg: float = Field(75.0, gt=0, lt=90, description="field-of-view bound: image regions and "
                                      "tracks whose ray is further off the optical axis are not used")
-    mask: Path | None = None
-    mask_folder: Path | None = None
-    border_px: int = Field(8, ge=0)
+    mask: Path | None = Field(None, description="static mask image, white = features allowed (e.g. to hide the robot's "
+                                                "body); relative to the config file")
+    mask_folder: Path | None = Field(None, description="per-frame masks with the images' file names (white = allowed); "
+                                                       "relative to the config file")
+    border_px: int = Field(8, ge=0, description="no corners closer than this to the image border")
 
 
 class KeyframeConfig(_Section):
-    min_parallax_px: float = Field(20.0, gt=0)
-    min_tracked_ratio: float = Field(0.6, gt=0, lt=1)
-    max_interval_s: float = Field(1.0, gt=0)
-    standstill_parallax_px: float = Field(1.0, ge=0)
-    standstill_distance_m: float = Field(0.01, ge=0)
-    standstill_rotation_rad: float = Field(0.005, ge=0)
+    min_parallax_px: float = Field(20.0, gt=0, description="new keyframe when the median parallax to the last keyframe "
+                                                           "exceeds this")
+    min_tracked_ratio: float = Field(0.6, gt=0, lt=1, description="... or when fewer than this share of the keyframe's "
+                                                                  "tracks survive")
+    max_interval_s: float = Field(1.0, gt=0, description="... or after this long (never while standing still)")
+    standstill_parallax_px: float = Field(1.0, ge=0, description="standing still: median parallax below this ...")
+    standstill_distance_m: float = Field(0.01, ge=0, description="... and wheel distance since the keyframe below this "
+                                                                 "...")
+    standstill_rotation_rad: float = Field(0.005, ge=0, description="... and wheel rotation since the keyframe below "
+                                                                    "this")
 
 
 class GateConfig(_Section):
-    min_parallax_px: float = Field(4.0, ge=0)
-    min_inlier_ratio: float = Field(0.5, ge=0, le=1)
-    min_cheirality_ratio: float = Field(0.8, ge=0, le=1)
-    min_features: int = Field(25, ge=5)
-    min_spread: float = Field(0.2, ge=0, le=1)
+    min_parallax_px: float = Field(4.0, ge=0, description="a keyframe needs this rotation-compensated parallax (at most"
+                                                          " keyframes.min_parallax_px)")
+    min_inlier_ratio: float = Field(0.5, ge=0, le=1, description="a keyframe needs this share of RANSAC inliers")
+    min_cheirality_ratio: float = Field(0.8, ge=0, le=1, description="a keyframe needs this share of near points in "
+                                                                     "front of both cameras")
+    min_features: int = Field(25, ge=5, description="a keyframe needs this many tracked features")
+    min_spread: float = Field(0.2, ge=0, le=1, description="a keyframe's features must cover this share of the image")
 
 
 class OdometryNoiseConfig(_Section):
-    xy_sigma_per_m: float = Field(0.02, gt=0)
-    xy_sigma_min_m: float = Field(0.005, gt=0)
-    yaw_sigma_per_m: float = Field(0.01, gt=0)
-    yaw_sigma_min_rad: float = Field(0.002, gt=0)
-    z_sigma_m: float = Field(0.05, gt=0)
-    roll_pitch_sigma_rad: float = Field(0.05, gt=0)
-    robust: RobustKind = RobustKind.CAUCHY
-    robust_k: float = Field(1.0, gt=0)  # in sigmas
-    max_gap_s: float = Field(0.5, gt=0)
+    xy_sigma_per_m: float = Field(0.02, gt=0, description="wheel factor: sigma of the planar translation per metre "
+                                                          "driven")
+    xy_sigma_min_m: float = Field(0.005, gt=0, description="lower bound of the planar translation sigma")
+    yaw_sigma_per_m: float = Field(0.01, gt=0, description="sigma of the heading change per metre driven")
+    yaw_sigma_min_rad: float = Field(0.002, gt=0, description="lower bound of the heading sigma")
+    z_sigma_m: float = Field(0.05, gt=0, description="sigma of the vertical motion between two keyframes")
+    roll_pitch_sigma_rad: float = Field(0.05, gt=0, description="sigma of the roll and pitch change between two "
+                                                                "keyframes")
+    robust: RobustKind = Field(RobustKind.CAUCHY, description="robust loss of the wheel factors (huber, cauchy, none); "
+                                                              "cauchy lets consistent vision overrule slipping wheels")
+    robust_k: float = Field(1.0, gt=0, description="threshold of the robust loss, in sigmas")
+    max_gap_s: float = Field(0.5, gt=0, description="longest gap in the wheel odometry bridged; over it the step is "
+                                                    "vision only")
 
 
 class PlanarPriorConfig(_Section):
-    enabled: bool = True
-    sigma_rad: float = Field(0.1, gt=0)
-    huber_k: float = Field(1.5, gt=0)
-    height_prior: bool = False
-    height_sigma_m: float = Field(0.5, gt=0)
+    enabled: bool = Field(True, description="soft, robust roll/pitch prior toward a level, z-up base (ground robots; "
+                                            "off by default for the tum and euroc layouts)")
+    sigma_rad: float = Field(0.1, gt=0, description="sigma of the roll/pitch prior")
+    huber_k: float = Field(1.5, gt=0, description="Huber threshold of the roll/pitch prior, in sigmas")
+    height_prior: bool = Field(False, description="soft z = 0 prior on the base (flat floor; needs enabled)")
+    height_sigma_m: float = Field(0.5, gt=0, description="sigma of the height prior")
 
 
 class BackendConfig(_Section):
-    window_keyframes: int = Field(20, ge=3, le=500)
-    max_landmarks: int = Field(150, ge=10, le=5000)
-    min_landmark_observations: int = Field(3, ge=2, le=20)  # keyframes that must see a track first
-    extra_iterations: int = Field(0, ge=0, le=10)
-    optimizer: Literal["gauss_newton", "dogleg"] = "gauss_newton"
-    pixel_sigma: float = Field(1.0, gt=0)
-    robust: RobustKind = RobustKind.HUBER
-    huber_k: float = Field(1.345, gt=0)
-    min_triangulation_angle_deg: float = Field(1.0, gt=0, lt=90)
-    max_reprojection_px: float = Field(3.0, gt=0)
-    max_landmark_depth_m: float = Field(80.0, gt=0)
-    outlier_residual_px: float = Field(6.0, gt=0)
-    use_odometry: bool = True
-    relinearize_threshold: float = Field(0.05, gt=0)
-    relinearize_skip: int = Field(1, ge=1, le=100)
-    odometry: OdometryNoiseConfig = OdometryNoiseConfig()
-    planar_prior: PlanarPriorConfig = PlanarPriorConfig()
+    window_keyframes: int = Field(20, ge=3, le=500, description="keyframes in the fixed-lag window")
+    max_landmarks: int = Field(150, ge=10, le=5000, description="landmark budget of the window")
+    min_landmark_observations: int = Field(3, ge=2, le=20, description="keyframes that must see a track before it is "
+                                                                       "triangulated")
+    extra_iterations: int = Field(0, ge=0, le=10, description="extra iSAM2 updates per keyframe")
+    optimizer: Literal["gauss_newton", "dogleg"] = Field("gauss_newton", description="iSAM2 step: gauss_newton or "
+                                                                                     "dogleg")
+    pixel_sigma: float = Field(1.0, gt=0, description="sigma of a projection (pixels)")
+    robust: RobustKind = Field(RobustKind.HUBER, description="robust loss of the projection factors (huber, cauchy, "
+                                                             "none)")
+    huber_k: float = Field(1.345, gt=0, description="threshold of the projection loss, in sigmas")
+    min_triangulation_angle_deg: float = Field(1.0, gt=0, lt=90, description="a track's rays must diverge this much "
+                                                                             "before it is triangulated")
+    max_reprojection_px: float = Field(3.0, gt=0, description="largest reprojection error of a newly triangulated "
+                                                              "landmark")
+    max_landmark_depth_m: float = Field(80.0, gt=0, description="landmarks further from the camera are not triangulated")
+    outlier_residual_px: float = Field(6.0, gt=0, description="observations with a larger residual after an update are "
+                                                              "removed")
+    use_odometry: bool = Field(True, description="wheel-odometry between-factors (metric scale); false: monocular, up "
+                                                 "to scale")
+    relinearize_threshold: float = Field(0.05, gt=0, description="iSAM2 relinearisation threshold")
+    relinearize_skip: int = Field(1, ge=1, le=100, description="iSAM2 relinearisation check every N updates")
+    odometry: OdometryNoiseConfig = Field(OdometryNoiseConfig(), description="wheel-odometry factors: noise per metre, "
+                                                                             "robust loss, gaps")
+    planar_prior: PlanarPriorConfig = Field(PlanarPriorConfig(), description="roll/pitch (and height) prior for ground "
+                                                                             "robots")
 
 
 class VizConfig(_Section):
-    rerun: RerunMode = RerunMode.SAVE
-    connect_url: str = "rerun+http://127.0.0.1:9876/proxy"
-    image_every: int = Field(4, ge=1)  # camera image and its tracks every N frames (images dominate the cost)
+    rerun: RerunMode = Field(RerunMode.SAVE, description="Rerun viewer: off, save (OUTPUT/recording.rrd), spawn (native"
+                                                         " window), connect (to viz.connect_url), serve (web viewer)")
+    connect_url: str = Field("rerun+http://127.0.0.1:9876/proxy", description="viewer address for rerun: connect")
+    image_every: int = Field(4, ge=1, description="log the camera image and its overlays every N frames (images "
+                                                  "dominate the recording cost)")
 
     @field_validator("rerun", mode="before")
     @classmethod
     def _yaml_off(cls, v):
         # YAML 1.1 reads a bare `off` as false.
         return "off" if v is False else v
-    track_tail: int = Field(10, ge=0, le=100)
+    track_tail: int = Field(10, ge=0, le=100, description="frames of track history drawn as tails on the image")
 
 
 class CameraConfig(_Section):
     """Intrinsics for layouts that do not carry them (tum, folder)."""
 
-    width: int = Field(gt=0)
-    height: int = Field(gt=0)
-    fx: float = Field(gt=0)
-    fy: float = Field(gt=0)
-    cx: float = Field(ge=0)
-    cy: float = Field(ge=0)
-    distortion_model: str = "none"
-    distortion: list[float] = []
-    T_base_cam: list[float] | None = None  # 16 numbers, row major; default: camera looking forward
+    width: int = Field(gt=0, description="image width (pixels)")
+    height: int = Field(gt=0, description="image height (pixels)")
+    fx: float = Field(gt=0, description="focal length x (pixels)")
+    fy: float = Field(gt=0, description="focal length y (pixels)")
+    cx: float = Field(ge=0, description="principal point x (pixels)")
+    cy: float = Field(ge=0, description="principal point y (pixels)")
+    distortion_model: str = Field("none", description="none, radtan or equidistant")
+    distortion: list[float] = Field([], description="distortion coefficients (radtan: k1 k2 p1 p2 [k3]; equidistant: k1"
+                                                    " k2 k3 k4)")
+    T_base_cam: list[float] | None = Field(None, description="camera mounting T_base_cam, 16 numbers row major; "
+                                                             "default: at the base origin, looking forward")
 
     @field_validator("T_base_cam")
     @classmethod
@@ -173,33 +204,42 @@ class CameraConfig(_Section):
 class OdometrySynthesisConfig(_Section):
     """Wheel odometry made from ground truth, for datasets without wheels (labelled synthetic)."""
 
-    enabled: bool = False
-    scale_error: float = Field(0.01, gt=-0.5, lt=0.5)
-    yaw_bias_per_m: float = 0.005
-    noise: float = Field(0.002, ge=0)
-    seed: int = 0
+    enabled: bool = Field(False, description="synthesise wheel odometry from ground truth (datasets without wheels; "
+                                             "labelled synthetic everywhere)")
+    scale_error: float = Field(0.01, gt=-0.5, lt=0.5, description="distance scale error of the synthetic wheels")
+    yaw_bias_per_m: float = Field(0.005, description="heading bias of the synthetic wheels (rad per metre)")
+    noise: float = Field(0.002, ge=0, description="random-walk noise on distance (m) and heading (rad) per sqrt(metre)")
+    seed: int = Field(0, description="random seed of that noise")
 
 
 class InputChecksConfig(_Section):
-    black_frame_mean: float = Field(4.0, ge=0)
-    max_time_gap_factor: float = Field(3.0, gt=1)
+    black_frame_mean: float = Field(4.0, ge=0, description="frames with a lower mean grey level are skipped as black")
+    max_time_gap_factor: float = Field(3.0, gt=1, description="a timestamp gap over this many nominal frame intervals "
+                                                              "is reported as dropped frames")
 
 
 class Config(_Section):
-    sequence: Path
-    output: Path
-    dataset: DatasetKind = DatasetKind.NATIVE
-    fps: float = Field(20.0, gt=0)
-    max_frames: int | None = Field(None, gt=1)
-    progress: bool = True
-    camera: CameraConfig | None = None
-    odometry_synthesis: OdometrySynthesisConfig = OdometrySynthesisConfig()
-    frontend: FrontendConfig = FrontendConfig()
-    keyframes: KeyframeConfig = KeyframeConfig()
-    gates: GateConfig = GateConfig()
-    backend: BackendConfig = BackendConfig()
-    viz: VizConfig = VizConfig()
-    checks: InputChecksConfig = InputChecksConfig()
+    sequence: Path = Field(description="sequence folder (or file, for layouts that have one); relative to the config "
+                                       "file")
+    output: Path = Field(description="output folder, created if missing; relative to the config file")
+    dataset: DatasetKind = Field(DatasetKind.NATIVE, description="input layout: native, or a loader for another layout "
+                                                                 "(see Other dataset layouts)")
+    fps: float = Field(20.0, gt=0, description="frame rate when the sequence has no timestamps (no times.txt, folder "
+                                               "layout)")
+    max_frames: int | None = Field(None, gt=1, description="stop after this many frames (none: all)")
+    progress: bool = Field(True, description="progress bar (on a terminal only)")
+    camera: CameraConfig | None = Field(None, description="intrinsics and mounting for layouts that do not carry them "
+                                                          "(tum, folder)")
+    odometry_synthesis: OdometrySynthesisConfig = Field(OdometrySynthesisConfig(), description="synthetic wheel "
+                                                                                               "odometry from ground "
+                                                                                               "truth")
+    frontend: FrontendConfig = Field(FrontendConfig(), description="front end: detection, tracking, undistortion, "
+                                                                   "RANSAC")
+    keyframes: KeyframeConfig = Field(KeyframeConfig(), description="keyframe selection")
+    gates: GateConfig = Field(GateConfig(), description="quality gates a keyframe must pass for vision to be used")
+    backend: BackendConfig = Field(BackendConfig(), description="fixed-lag smoother (GTSAM iSAM2)")
+    viz: VizConfig = Field(VizConfig(), description="Rerun recording or live viewer")
+    checks: InputChecksConfig = Field(InputChecksConfig(), description="screening of input frames")
 
     @model_validator(mode="after")
     def _check(self) -> Config:
