@@ -3,10 +3,11 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 from pydantic import Field, create_model
 
 from windowvo import config_doc
-from windowvo.config import RerunMode, TrackerKind, load_config
+from windowvo.config import RerunMode, TrackerKind, config_from_dict, load_config
 from windowvo.errors import ConfigError
 
 
@@ -66,9 +67,31 @@ def test_missing_config_file(tmp_path):
         load_config(tmp_path / "nope.yaml")
 
 
+EXAMPLE = Path(__file__).resolve().parents[1] / "configs" / "example.yaml"
+
+
 def test_example_config_is_valid():
-    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "example.yaml")
+    cfg = load_config(EXAMPLE)
     assert cfg.frontend.tracker is TrackerKind.KLT and cfg.backend.window_keyframes == 20
+    # it must not pin the prior on: the tum and euroc layouts turn it off unless it is set
+    assert "enabled" not in cfg.backend.planar_prior.model_fields_set
+
+
+def test_example_config_shows_the_defaults():
+    """The example says every key in it shows its default: check each one against the models."""
+    example = yaml.safe_load(EXAMPLE.read_text())
+    defaults = config_from_dict({"sequence": "s", "output": "o"}).to_yaml_dict()
+
+    def walk(node: dict, ref: dict, prefix: str) -> None:
+        for key, value in node.items():
+            where = prefix + key
+            assert key in ref, f"{where}: not a config key"
+            if isinstance(value, dict):
+                walk(value, ref[key], where + ".")
+            elif where not in ("sequence", "output"):
+                assert value == ref[key], f"{where}: example says {value!r}, the default is {ref[key]!r}"
+
+    walk(example, defaults, "")
 
 
 def _run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
