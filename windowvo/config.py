@@ -301,16 +301,16 @@ def config_from_dict(data: dict, base_dir: Path | None = None) -> Config:
     if base_dir is not None:
         base_dir = Path(base_dir)
 
-        def fix(p: Path | None) -> Path | None:
-            if p is None:
-                return None
+        def fix(p: Path) -> Path:
             p = Path(p).expanduser()
             return p if p.is_absolute() else (base_dir / p).resolve()
 
         cfg.sequence = fix(cfg.sequence)
         cfg.output = fix(cfg.output)
-        cfg.frontend.mask = fix(cfg.frontend.mask)
-        cfg.frontend.mask_folder = fix(cfg.frontend.mask_folder)
+        if cfg.frontend.mask is not None:
+            cfg.frontend.mask = fix(cfg.frontend.mask)
+        if cfg.frontend.mask_folder is not None:
+            cfg.frontend.mask_folder = fix(cfg.frontend.mask_folder)
     return cfg
 
 

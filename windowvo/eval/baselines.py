@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence as Sequence_
 from dataclasses import dataclass
 
 import cv2
@@ -37,7 +38,7 @@ def essential_chaining(seq: Sequence, max_frames: int | None = None, n_features:
     if seq.odometry is None:
         raise ValueError("essential-matrix chaining needs wheel odometry for its scale")
     cam = seq.camera
-    orb = cv2.ORB_create(nfeatures=n_features)
+    orb = cv2.ORB.create(nfeatures=n_features)
     bf = cv2.BFMatcher(cv2.NORM_HAMMING)
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     T_bc, T_cb = cam.T_base_cam, inv_T(cam.T_base_cam)
@@ -45,7 +46,8 @@ def essential_chaining(seq: Sequence, max_frames: int | None = None, n_features:
     times = [float(seq.timestamps[0])]
     failed = 0
     t0 = time.perf_counter()
-    prev_kp, prev_des = None, None
+    prev_kp: Sequence_[cv2.KeyPoint] = ()
+    prev_des: np.ndarray | None = None
     prev_t = float(seq.timestamps[0])
     for i in range(n):
         try:
@@ -60,8 +62,8 @@ def essential_chaining(seq: Sequence, max_frames: int | None = None, n_features:
                 pairs = bf.knnMatch(prev_des, des, k=2)
                 good = [m for m, *rest in (p for p in pairs if len(p) == 2) if m.distance < ratio * rest[0].distance]
                 if len(good) >= 8:
-                    p1 = np.float64([prev_kp[m.queryIdx].pt for m in good])
-                    p2 = np.float64([kp[m.trainIdx].pt for m in good])
+                    p1 = np.array([prev_kp[m.queryIdx].pt for m in good], dtype=np.float64)
+                    p2 = np.array([kp[m.trainIdx].pt for m in good], dtype=np.float64)
                     x1 = cam.undistort_normalized(p1)
                     x2 = cam.undistort_normalized(p2)
                     E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.RANSAC, prob=0.999,
@@ -71,7 +73,7 @@ def essential_chaining(seq: Sequence, max_frames: int | None = None, n_features:
                         if ok >= 8:
                             dist = seq.odometry.distance(prev_t, t)
                             # X_cur = R X_prev + t  ->  T_camprev_camcur = inv([R | t])
-                            T_cur_prev = make_T(R, tvec.ravel() / max(np.linalg.norm(tvec), 1e-12) * dist)
+                            T_cur_prev = make_T(R, tvec.ravel() / max(float(np.linalg.norm(tvec)), 1e-12) * dist)
                             T_step = T_bc @ inv_T(T_cur_prev) @ T_cb
             if T_step is None:
                 failed += 1

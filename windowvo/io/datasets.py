@@ -42,14 +42,15 @@ from .trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
-T_BASE_CAM_FORWARD = make_T(R_BASE_CAM_FORWARD, [0.0, 0.0, 0.0])
+T_BASE_CAM_FORWARD = make_T(R_BASE_CAM_FORWARD, np.zeros(3))
 
 
 def _camera_from_config(c: CameraConfig | None, what: str) -> CameraModel:
     if c is None:
         raise CalibrationError(f"dataset '{what}' needs a 'camera' section in the config (width, height, fx, fy, cx, cy)")
     T = np.asarray(c.T_base_cam, float).reshape(4, 4) if c.T_base_cam is not None else T_BASE_CAM_FORWARD
-    return CameraModel(c.width, c.height, c.fx, c.fy, c.cx, c.cy, c.distortion_model, tuple(c.distortion), T)
+    return CameraModel(c.width, c.height, c.fx, c.fy, c.cx, c.cy, DistortionModel(c.distortion_model),
+                       tuple(c.distortion), T)
 
 
 def _anchor(ts: np.ndarray, T_world_base: np.ndarray) -> Trajectory:
@@ -235,7 +236,7 @@ def load_euroc(root: Path) -> Sequence:
         g = np.asarray([[float(x) for x in r[:8]] for r in _read_table(gt_path, 8, sep=",")])
         tg = g[:, 0] * 1e-9
         # columns: p_RS_R x y z, q_RS w x y z  (body B in world R)
-        T_R_B = np.stack([make_T(R_from_quat([r[5], r[6], r[7], r[4]]), r[1:4]) for r in g])
+        T_R_B = np.stack([make_T(R_from_quat(r[[5, 6, 7, 4]]), r[1:4]) for r in g])  # w x y z -> x y z w
         T_img, inside = _interp_poses(tg, T_R_B, times)
         if inside.sum() >= 2:
             gt = _anchor(times[inside], T_img[inside])

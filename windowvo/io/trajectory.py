@@ -41,7 +41,7 @@ def write_tum(path: Path, timestamps: np.ndarray, poses: np.ndarray, header: str
     """Write poses atomically (temp file then rename) so a crash never leaves half a file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    lines = []
+    lines: list[str] = []
     if header:
         lines.extend(f"# {h}" for h in header.splitlines())
     for t, T in zip(timestamps, poses):
