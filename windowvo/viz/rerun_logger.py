@@ -2,30 +2,39 @@
 
 Entity layout (world is z up, like the robot base):
 
-* ``world/estimate``          estimated keyframe path (refreshed every 10 keyframes), current pose, and
-  the final per-frame trajectory
-* ``world/estimate/base/cam`` camera frustum: transform plus pinhole, with the image
-  and the tracked features (coloured by age, RANSAC outliers red, short tails as arrows)
-* ``world/window``            the window's keyframe poses (points)
-* ``world/landmarks``         the window's landmarks
-* ``world/wheel_odometry``    wheel odometry alone; ``world/groundtruth`` when present
-* ``plots/*``                 tracked features, inlier ratio, parallax, reprojection RMS, back-end ms
+* ``world/estimate/online``   the causal per-frame estimate (``FrameEstimate.T_world_base``), revealed with time
+* ``world/estimate/base``     the current causal pose; ``.../cam`` the camera frustum with the image and the
+  tracked features (coloured by age, RANSAC outliers red, short tails as arrows)
+* ``world/estimate/keyframes`` keyframe positions as estimated when each keyframe was added
+* ``world/window``            the fixed-lag window's keyframes as smoothed now; ``world/landmarks`` its landmarks
+* ``world/final``             the final smoothed trajectory (one pose per frame), logged when the run ends
+* ``world/groundtruth``, ``world/wheel_odometry``  references, revealed with time like the estimate
+* ``plots/{counts,ms,px,ratios}/*``  one plot view per unit; ``states/*`` gate outcome, back-end status and
+  keyframe reason per keyframe (a state timeline)
+* ``log``                     text log: keyframes, gate failures, resets, skipped frames, odometry gaps
+* ``legend``                  markdown: what each colour means
 
-Timelines: ``frame`` (index) and ``time`` (seconds, the sequence clock).
+Timelines: ``frame`` (index) and ``time`` (the sequence clock; the default timeline).
+
+Cost: the camera image is JPEG-compressed (``viz.jpeg_quality``); scalars are buffered and sent as
+columns every few frames; paths revealed with time are sent as frozen blocks plus a short growing tip,
+so the data logged per frame stays flat however long the run.
 """
 
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
+import cv2
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
 from ..config import Config, RerunMode
 from ..geometry import quat_from_R
-from ..types import Frame, FrameEstimate, FrontendOutput
+from ..types import BackendStatus, Frame, FrameEstimate, FrontendOutput, GateOutcome
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..io.sequence import Sequence
@@ -33,27 +42,194 @@ if TYPE_CHECKING:  # pragma: no cover
 
 log = logging.getLogger(__name__)
 
+RGB = tuple[int, int, int]
 
-def blueprint() -> rrb.Blueprint:
+# 3D colours: saturated mid-luminance hues that read on the viewer's dark and light themes.
+ESTIMATE_RGB: RGB = (31, 119, 230)  # blue: causal estimate, one pose per frame
+KEYFRAME_RGB: RGB = (150, 70, 210)  # purple: keyframes as estimated when added
+WINDOW_RGB: RGB = (225, 40, 160)  # magenta: the smoother's current window
+FINAL_RGB: RGB = (215, 48, 39)  # red: final smoothed trajectory
+GROUNDTRUTH_RGB: RGB = (0, 158, 115)  # green: ground truth
+WHEELS_RGB: RGB = (230, 159, 0)  # amber: wheel odometry alone
+LANDMARK_RGB: RGB = (120, 120, 135)  # grey: landmarks
+FRUSTUM_RGB: RGB = (31, 119, 230)
+# Camera overlays.
+TRACK_YOUNG_RGB: RGB = (60, 120, 255)
+TRACK_OLD_RGB: RGB = (230, 230, 40)
+OUTLIER_RGB: RGB = (255, 40, 40)
+TAIL_RGB: RGB = (90, 200, 255)
+# Plot series: no two alike within a view.
+SERIES_RGB: tuple[RGB, ...] = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40))
+
+GATE_RGB: dict[GateOutcome, RGB] = {
+    GateOutcome.PASS: (44, 160, 44),
+    GateOutcome.LOW_PARALLAX: (255, 127, 14),
+    GateOutcome.LOW_INLIERS: (214, 39, 40),
+    GateOutcome.CHEIRALITY: (148, 103, 189),
+    GateOutcome.FEW_FEATURES: (140, 86, 75),
+    GateOutcome.POOR_SPREAD: (227, 119, 194),
+    GateOutcome.NOT_EVALUATED: (127, 127, 127),
+}
+STATUS_RGB: dict[BackendStatus, RGB] = {
+    BackendStatus.OK: (44, 160, 44),
+    BackendStatus.INIT: (31, 119, 180),
+    BackendStatus.ODOMETRY_FALLBACK: (255, 127, 14),
+    BackendStatus.RECOVERED: (214, 39, 40),
+}
+
+
+@dataclass(frozen=True)
+class Series:
+    """One plotted quantity: entity under ``plots/<unit>/``, label, colour."""
+
+    unit: str
+    key: str
+    label: str
+    color: RGB
+
+    @property
+    def entity(self) -> str:
+        return f"plots/{self.unit}/{self.key}"
+
+
+# unit -> (view title, series); one plot view each, so every view has one y-axis unit.
+PLOT_UNITS: dict[str, tuple[str, tuple[Series, ...]]] = {}
+
+
+def _register(unit: str, title: str, series: list[tuple[str, str]]) -> None:
+    PLOT_UNITS[unit] = (title, tuple(Series(unit, k, lbl, SERIES_RGB[i]) for i, (k, lbl) in enumerate(series)))
+
+
+_register("counts", "counts", [("tracked", "tracked (inliers)"), ("outliers", "RANSAC outliers"),
+                               ("detected", "new detections"), ("landmarks", "landmarks in window")])
+_register("ms", "milliseconds", [("frontend", "front end"), ("backend", "back end (keyframes)"),
+                                 ("latency", "frame in -> pose out")])
+_register("px", "pixels", [("parallax", "median parallax"), ("parallax_rot_comp", "parallax, rotation removed"),
+                           ("reprojection_rms", "reprojection RMS")])
+_register("ratios", "ratios", [("inliers", "inlier ratio"), ("cheirality", "cheirality ratio"),
+                               ("spread", "feature spread")])
+
+CAM_PATH = "world/estimate/base/cam"
+SCALAR_FLUSH_FRAMES = 10  # scalars and path tips are sent every this many frames (and at the end)
+REVEAL_BLOCK = 50  # points per frozen block of a path revealed with time
+EPOCH_THRESHOLD_S = 1e8  # timestamps above this are taken as Unix time (shown as dates)
+
+
+def _yes(flag: bool) -> str:
+    # Recording properties hold booleans as words: rerun's AnyValues re-types a bool logged twice.
+    return "yes" if flag else "no"
+
+
+def _hex(c: RGB) -> str:
+    return "#{:02x}{:02x}{:02x}".format(*c)
+
+
+def legend_markdown() -> str:
+    """The colour legend shown in the ``legend`` view."""
+    rows_3d = [
+        (ESTIMATE_RGB, "blue line", "estimate, causal (the pose a robot gets at each frame); frustum = current pose"),
+        (KEYFRAME_RGB, "purple dots", "keyframes, as estimated when each was added"),
+        (WINDOW_RGB, "magenta dots", "the smoother's window now (keyframes refined by later ones)"),
+        (FINAL_RGB, "red line", "final smoothed trajectory (trajectory.txt), drawn when the run ends"),
+        (GROUNDTRUTH_RGB, "green line", "ground truth"),
+        (WHEELS_RGB, "amber line", "wheel odometry alone"),
+        (LANDMARK_RGB, "grey dots", "landmarks in the window"),
+    ]
+    lines = ["## 3D (top-down; ground truth and wheels revealed with time)", "",
+             "| colour | | meaning |", "|---|---|---|"]
+    lines += [f"| {name} | `{_hex(c)}` | {meaning} |" for c, name, meaning in rows_3d]
+    lines += ["", "## Camera", "",
+              f"- dots: tracked features, **blue** (`{_hex(TRACK_YOUNG_RGB)}`) = new, **yellow** "
+              f"(`{_hex(TRACK_OLD_RGB)}`) = tracked for 30+ frames",
+              f"- **red** (`{_hex(OUTLIER_RGB)}`) dots: rejected by RANSAC on this frame",
+              f"- **light blue** (`{_hex(TAIL_RGB)}`) arrows: each track's motion over the last frames (tails)",
+              "", "## Plots and states", "",
+              "One plot per unit (counts, milliseconds, pixels, ratios); the state timeline shows per keyframe "
+              "the gate outcome (green = pass), the back-end status and why it became a keyframe.",
+              "", "## Text log", "", "Keyframes (info), gate failures, skipped frames and odometry gaps (warn), "
+              "back-end resets (error)."]
+    return "\n".join(lines)
+
+
+def _frame_extent(seq: Sequence) -> np.ndarray | None:
+    """(x, y) corners of the area the run will cover, from ground truth or wheel odometry."""
+    if seq.groundtruth is not None and len(seq.groundtruth):
+        p = seq.groundtruth.anchored().positions
+    elif seq.odometry is not None and len(seq.timestamps):
+        ts = seq.timestamps
+        t0 = float(ts[0])
+        p = np.stack([seq.odometry.delta(t0, float(t))[:3, 3] for t in ts[:: max(1, len(ts) // 200)]])
+    else:
+        return None
+    return np.array([p[:, :2].min(axis=0), p[:, :2].max(axis=0)])
+
+
+def top_down_eye(extent: np.ndarray | None) -> rrb.EyeControls3D | None:
+    """An orbit eye looking straight down on the area, x (forward at start) pointing up the screen."""
+    if extent is None:
+        return None
+    centre = extent.mean(axis=0)
+    size = float(max(np.max(extent[1] - extent[0]), 2.0))
+    height = 1.6 * size
+    return rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=(centre[0] - 1e-3 * size, centre[1], height),
+                             look_target=(centre[0], centre[1], 0.0), eye_up=(0.0, 0.0, 1.0))
+
+
+LEGEND_ROWS_SHARE = 0.3  # top share of each plot kept free for its legend (y range = data top / (1 - this))
+
+
+def plot_ranges(cfg: Config | None, maxima: dict[str, float] | None = None) -> dict[str, tuple[float, float]]:
+    """y range per plot unit, with room at the top for the legend so that it covers no data.
+
+    Counts and ratios have known bounds (the feature and landmark budgets, 1); milliseconds and
+    pixels get theirs from ``maxima`` (the data's high percentile, known when the run ends)."""
+    tops: dict[str, float] = {"ratios": 1.05}
+    if cfg is not None:
+        tops["counts"] = 1.05 * max(cfg.frontend.max_features, cfg.backend.max_landmarks)
+    for unit, top in (maxima or {}).items():
+        if np.isfinite(top) and top > 0:
+            tops[unit] = float(top)
+    return {unit: (0.0, top / (1.0 - LEGEND_ROWS_SHARE)) for unit, top in tops.items()}
+
+
+def blueprint(seq: Sequence | None = None, cfg: Config | None = None,
+              maxima: dict[str, float] | None = None) -> rrb.Blueprint:
+    """Default layout: 3D over the text log | camera over the legend | plots per unit | plots and gate states."""
+    ranges = plot_ranges(cfg, maxima)
+    plots = []
+    for unit, (title, _series) in PLOT_UNITS.items():
+        axis = rrb.ScalarAxis(range=ranges[unit], zoom_lock=False) if unit in ranges else None
+        plots.append(rrb.TimeSeriesView(name=title, origin=f"plots/{unit}", axis_y=axis,
+                                        plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=True)))
+    eye = top_down_eye(_frame_extent(seq)) if seq is not None else None
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(name="3D", origin="world"),
             rrb.Vertical(
-                rrb.Spatial2DView(name="camera", origin="world/estimate/base/cam"),
-                rrb.TimeSeriesView(name="plots", origin="plots"),
-                row_shares=[3, 2],
+                rrb.Spatial3DView(name="3D (top-down)", origin="world", eye_controls=eye),
+                rrb.TextLogView(name="log", origin="log"),
+                row_shares=[3, 1.2],
             ),
-            column_shares=[3, 2],
+            rrb.Vertical(
+                rrb.Spatial2DView(name="camera", origin=CAM_PATH),
+                rrb.TextDocumentView(name="legend", origin="legend"),
+                row_shares=[1, 1.3],
+            ),
+            rrb.Vertical(plots[0], plots[1]),
+            rrb.Vertical(plots[2], plots[3], rrb.StateTimelineView(name="gate outcomes", origin="states"),
+                         row_shares=[1, 1, 0.8]),
+            column_shares=[3.2, 2.6, 2.1, 2.1],
         ),
-        collapse_panels=True,
+        rrb.BlueprintPanel(state="hidden"),
+        rrb.SelectionPanel(state="hidden"),
+        rrb.TimePanel(state="collapsed", timeline="time", play_state="following"),
     )
 
 
 def age_colors(ages: np.ndarray) -> np.ndarray:
-    """Young tracks blue, old tracks green-yellow."""
+    """Young tracks blue, old tracks yellow."""
     a = np.clip(ages / 30.0, 0.0, 1.0)[:, None]
-    young = np.array([[60, 120, 255]])
-    old = np.array([[230, 230, 40]])
+    young = np.array([TRACK_YOUNG_RGB])
+    old = np.array([TRACK_OLD_RGB])
     return (young * (1 - a) + old * a).astype(np.uint8)
 
 
@@ -62,120 +238,291 @@ def _transform(T: np.ndarray) -> rr.Transform3D:
     return rr.Transform3D(translation=T[:3, 3], quaternion=rr.Quaternion(xyzw=q))
 
 
+@dataclass
+class RevealedPath:
+    """A path drawn up to the current time: frozen blocks of ``REVEAL_BLOCK`` points, each logged once
+    (entity ``<path>/b<k>``), and a growing tip (``<path>/tip``); latest-at shows exactly the part
+    logged up to the time cursor, and the data logged stays O(points)."""
+
+    entity: str
+    color: RGB
+    radius: float
+    as_points: bool = False
+    points: list[np.ndarray] = field(default_factory=list)
+    frozen: int = 0  # index of the first point of the tip
+    n_blocks: int = 0
+    logged: int = 0  # points already sent
+
+    def add(self, p: np.ndarray) -> None:
+        self.points.append(np.asarray(p, float))
+
+    def _archetype(self, pts: np.ndarray) -> rr.Points3D | rr.LineStrips3D:
+        if self.as_points:
+            return rr.Points3D(pts, colors=[self.color], radii=self.radius)
+        return rr.LineStrips3D([pts], colors=[self.color], radii=self.radius)
+
+    def flush(self, rec: rr.RecordingStream) -> None:
+        """Send what was added since the last flush (at the recording's current time)."""
+        n = len(self.points)
+        if n == self.logged:
+            return
+        if n - self.frozen >= REVEAL_BLOCK:
+            rec.log(f"{self.entity}/b{self.n_blocks}", self._archetype(np.asarray(self.points[self.frozen:n])))
+            self.n_blocks += 1
+            # Lines share the block's last point so they stay connected.
+            self.frozen = n if self.as_points else n - 1
+        tip = np.asarray(self.points[self.frozen:n])
+        if len(tip):
+            rec.log(f"{self.entity}/tip", self._archetype(tip))
+        else:
+            rec.log(f"{self.entity}/tip", rr.Clear(recursive=False))
+        self.logged = n
+
+
 class RerunLogger:
     def __init__(self, cfg: Config, seq: Sequence, recording_path=None):
         self.cfg = cfg
         self.seq = seq
         self.rec = rr.RecordingStream("windowvo", make_default=False)
+        ts = np.asarray(seq.timestamps, float)
+        self._epoch = bool(len(ts) and ts[0] > EPOCH_THRESHOLD_S)
         mode = cfg.viz.rerun
         self.path = None
+        bp = blueprint(seq, cfg)
         if mode is RerunMode.SAVE:
             self.path = recording_path or (cfg.output / "recording.rrd")
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.rec.save(str(self.path), default_blueprint=blueprint())
+            self.rec.save(str(self.path), default_blueprint=bp)
         elif mode is RerunMode.SPAWN:
-            self.rec.spawn(default_blueprint=blueprint())
+            self.rec.spawn(default_blueprint=bp)
         elif mode is RerunMode.CONNECT:
-            self.rec.connect_grpc(cfg.viz.connect_url, default_blueprint=blueprint())
+            self.rec.connect_grpc(cfg.viz.connect_url, default_blueprint=bp)
         elif mode is RerunMode.SERVE:
-            uri = self.rec.serve_grpc(default_blueprint=blueprint())
+            uri = self.rec.serve_grpc(default_blueprint=bp)
             rr.serve_web_viewer(connect_to=uri, open_browser=False)
             log.info("Rerun web viewer serving %s", uri)
-        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self._send_properties()
+        rec = self.rec
+        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         cam = seq.camera
-        self.rec.log("world/estimate/base/cam", rr.Transform3D(
-            translation=cam.T_base_cam[:3, 3], mat3x3=cam.T_base_cam[:3, :3]), static=True)
-        self.rec.log("world/estimate/base/cam", rr.Pinhole(
-            image_from_camera=cam.K, width=cam.width, height=cam.height,
-            camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.3), static=True)
-        self._log_reference_trajectories()
-        self.est_positions: list[np.ndarray] = []
+        rec.log(CAM_PATH, rr.Transform3D(translation=cam.T_base_cam[:3, 3], mat3x3=cam.T_base_cam[:3, :3]),
+                static=True)
+        rec.log(CAM_PATH, rr.Pinhole(image_from_camera=cam.K, width=cam.width, height=cam.height,
+                                     camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.3,
+                                     color=FRUSTUM_RGB), static=True)
+        rec.log("legend", rr.TextDocument(legend_markdown(), media_type=rr.MediaType.MARKDOWN), static=True)
+        for _title, series in PLOT_UNITS.values():
+            for s in series:
+                rec.log(s.entity, rr.SeriesLines(colors=[s.color], names=[s.label], widths=[1.5]), static=True)
+        rec.log("states/gate", rr.StateConfiguration(values=[g.value for g in GATE_RGB],
+                                                     colors=[GATE_RGB[g] for g in GATE_RGB]), static=True)
+        rec.log("states/backend", rr.StateConfiguration(values=[s.value for s in STATUS_RGB],
+                                                        colors=[STATUS_RGB[s] for s in STATUS_RGB]), static=True)
+        self.online = RevealedPath("world/estimate/online", ESTIMATE_RGB, 0.02)
+        self.keyframes = RevealedPath("world/estimate/keyframes", KEYFRAME_RGB, 0.04, as_points=True)
+        self.groundtruth = RevealedPath("world/groundtruth", GROUNDTRUTH_RGB, 0.015)
+        self.wheels = RevealedPath("world/wheel_odometry", WHEELS_RGB, 0.015)
+        self._paths = [self.online, self.keyframes, self.groundtruth, self.wheels]
+        self._gt = seq.groundtruth.anchored() if seq.groundtruth is not None and len(seq.groundtruth) else None
+        self._gt_next = 0  # next ground-truth sample to reveal
+        self._t0 = float(ts[0]) if len(ts) else 0.0
+        # Scalars waiting to be sent as columns: entity -> (frame indices, times, values).
+        self._scalars: dict[str, tuple[list[int], list[float], list[float]]] = {}
+        self._unit_values: dict[str, list[float]] = {}  # every plotted value per unit, for the final y ranges
+        self._frames_since_flush = 0
+        self.n_logged_frames = 0
         # Pixels of the tracks over the last few frames, for the tails: (ids, pixels) per frame.
         self._tail_history: list[tuple[np.ndarray, np.ndarray]] = []
 
-    def _log_reference_trajectories(self) -> None:
-        seq = self.seq
-        ts = seq.timestamps
-        if seq.groundtruth is not None:
-            gt = seq.groundtruth.anchored()
-            self.rec.log("world/groundtruth", rr.LineStrips3D([gt.positions], colors=[[160, 160, 160]], radii=0.01),
-                         static=True)
-        if seq.odometry is not None:
-            odo = seq.odometry
-            t0 = float(ts[0])
-            pts = np.stack([odo.delta(t0, float(t))[:3, 3] for t in ts[:: max(1, len(ts) // 500)]])
-            self.rec.log("world/wheel_odometry", rr.LineStrips3D([pts], colors=[[255, 150, 40]], radii=0.01),
-                         static=True)
+    # ------------------------------------------------------------------ recording properties
+    def _send_properties(self) -> None:
+        seq, cfg = self.seq, self.cfg
+        name = seq.name or seq.root.name
+        self.rec.send_recording_name(f"windowvo: {name}")
+        ts = np.asarray(seq.timestamps, float)
+        n = len(ts) if cfg.max_frames is None else min(len(ts), cfg.max_frames)
+        duration = float(ts[n - 1] - ts[0]) if n else 0.0
+        self.rec.send_property("sequence", rr.AnyValues(
+            name=name, path=str(seq.root), dataset=cfg.dataset.value, frames=n, duration_s=duration,
+            start_time_s=float(ts[0]) if n else 0.0, camera=f"{seq.camera.width}x{seq.camera.height}",
+            wheel_odometry=_yes(seq.odometry is not None), ground_truth=_yes(seq.groundtruth is not None)))
+        import yaml
 
-    def log_frame(self, frame: Frame, est: FrameEstimate) -> None:
-        fo, bo = est.frontend, est.backend
-        if fo is None:
+        self.rec.send_property("config", rr.AnyValues(yaml=yaml.safe_dump(cfg.to_yaml_dict(), sort_keys=False)))
+
+    # ------------------------------------------------------------------ per frame
+    def _set_time(self, index: int, t: float) -> None:
+        self.rec.set_time("frame", sequence=index)
+        if self._epoch:
+            self.rec.set_time("time", timestamp=t)
+        else:
+            self.rec.set_time("time", duration=t)
+
+    def _scalar(self, key: str, index: int, t: float, value: float) -> None:
+        if not np.isfinite(value):
             return
+        self._unit_values.setdefault(key.split("/")[1], []).append(float(value))
+        buf = self._scalars.setdefault(key, ([], [], []))
+        buf[0].append(index)
+        buf[1].append(t)
+        buf[2].append(float(value))
+
+    def _reveal_references(self, t: float) -> None:
+        if self._gt is not None:
+            j = int(np.searchsorted(self._gt.timestamps, t + 1e-9, side="right"))
+            if j > self._gt_next:
+                self.groundtruth.add(self._gt.positions[j - 1])
+                self._gt_next = j
+        odo = self.seq.odometry
+        if odo is not None:
+            self.wheels.add(odo.delta(self._t0, t)[:3, 3])
+
+    def log_frame(self, frame: Frame | None, est: FrameEstimate) -> None:
+        """Log one frame. ``frame`` may be None for a skipped frame (``est.skipped``): its pose and note
+        are logged, nothing from the camera."""
+        idx, t = est.frame_index, float(est.timestamp)
         rec = self.rec
+        self._set_time(idx, t)
+        self.n_logged_frames += 1
+        rec.log("world/estimate/base", _transform(est.T_world_base))
+        self.online.add(est.T_world_base[:3, 3])
+        self._reveal_references(t)
+        self._scalar("plots/ms/latency", idx, t, est.latency_ms)
+        if est.skipped:
+            rec.log("log", rr.TextLog(f"frame {idx} {est.note or 'skipped'}", level=rr.TextLogLevel.WARN))
+        fo, bo = est.frontend, est.backend
+        if fo is not None:
+            self._log_frontend(frame, fo, idx, t)
+        if bo is not None:
+            self.keyframes.add(bo.T_world_base[:3, 3])
+            order = sorted(bo.keyframe_poses)
+            win = np.asarray([bo.keyframe_poses[k][:3, 3] for k in order]).reshape(-1, 3)
+            rec.log("world/window", rr.Points3D(win, colors=[WINDOW_RGB], radii=0.06))
+            rec.log("world/landmarks", rr.Points3D(bo.p_world_landmarks.reshape(-1, 3), colors=[LANDMARK_RGB],
+                                                   radii=0.03))
+            self._scalar("plots/counts/landmarks", idx, t, bo.n_landmarks)
+            self._scalar("plots/px/reprojection_rms", idx, t, bo.reprojection_rms_px)
+            self._scalar("plots/ms/backend", idx, t, bo.backend_ms)
+            rec.log("states/backend", rr.StateChange(state=bo.status.value))
+        if fo is not None and fo.is_keyframe:
+            self._log_keyframe_text(idx, fo, est)
+        elif est.note and not est.skipped:
+            rec.log("log", rr.TextLog(f"frame {idx}: {est.note}", level=rr.TextLogLevel.WARN))
+        self._frames_since_flush += 1
+        if self._frames_since_flush >= SCALAR_FLUSH_FRAMES:
+            self.flush()
+
+    def log_message(self, text: str, level: str = "WARN", frame_index: int | None = None,
+                    timestamp: float | None = None) -> None:
+        """A line in the text log (e.g. a skipped frame or an odometry gap the pipeline noticed)."""
+        if frame_index is not None and timestamp is not None:
+            self._set_time(frame_index, float(timestamp))
+        self.rec.log("log", rr.TextLog(text, level=level))
+
+    def _log_frontend(self, frame: Frame | None, fo: FrontendOutput, idx: int, t: float) -> None:
         tail = self.cfg.viz.track_tail
         if tail > 1:
             self._tail_history.append((fo.track_ids, fo.pixels))
             del self._tail_history[:-tail]
-        rec.set_time("frame", sequence=frame.index)
-        rec.set_time("time", duration=float(frame.timestamp))
-        cam_path = "world/estimate/base/cam"
-        if frame.index % self.cfg.viz.image_every == 0:
-            self._log_camera(frame, fo, cam_path)
-        rec.log("plots/tracked_features", rr.Scalars(float(len(fo.track_ids))))
-        rec.log("plots/inlier_ratio", rr.Scalars(float(fo.inlier_ratio)))
-        rec.log("plots/parallax_px", rr.Scalars(float(fo.parallax_px)))
-        rec.log("plots/frontend_ms", rr.Scalars(float(fo.frontend_ms)))
+        if frame is not None and idx % self.cfg.viz.image_every == 0:
+            self._log_camera(frame, fo)
+        self._scalar("plots/counts/tracked", idx, t, len(fo.track_ids))
+        self._scalar("plots/counts/outliers", idx, t, len(fo.outlier_pixels))
+        self._scalar("plots/counts/detected", idx, t, fo.n_detected)
+        self._scalar("plots/ratios/inliers", idx, t, fo.inlier_ratio)
+        self._scalar("plots/ratios/cheirality", idx, t, fo.cheirality_ratio)
+        self._scalar("plots/ratios/spread", idx, t, fo.spread)
+        self._scalar("plots/px/parallax", idx, t, fo.parallax_px)
+        self._scalar("plots/px/parallax_rot_comp", idx, t, fo.rot_comp_parallax_px)
+        self._scalar("plots/ms/frontend", idx, t, fo.frontend_ms)
+
+    def _log_keyframe_text(self, idx: int, fo: FrontendOutput, est: FrameEstimate) -> None:
+        rec = self.rec
+        bo = est.backend
+        status = bo.status if bo is not None else None
+        reason = fo.keyframe_reason.value or "forced"
+        rec.log("states/gate", rr.StateChange(state=fo.gate.value))
+        rec.log("states/keyframe_reason", rr.StateChange(state=reason))
+        text = f"keyframe at frame {idx} ({reason}): gate {fo.gate.value}"
         if bo is not None:
-            T = bo.T_world_base
-            rec.log("world/estimate/base", _transform(T))
-            self.est_positions.append(T[:3, 3].copy())
-            if len(self.est_positions) % 10 == 1:
-                # the whole keyframe path, every 10 keyframes (keeps the cost per frame flat)
-                rec.log("world/estimate/keyframes", rr.LineStrips3D([np.asarray(self.est_positions)],
-                                                                    colors=[[40, 200, 90]], radii=0.015))
-            win = np.asarray([P[:3, 3] for P in bo.keyframe_poses.values()])
-            rec.log("world/window", rr.Points3D(win, colors=[[40, 200, 90]], radii=0.05))
-            if len(bo.p_world_landmarks):
-                rec.log("world/landmarks", rr.Points3D(bo.p_world_landmarks, colors=[[220, 220, 255]], radii=0.02))
-            if np.isfinite(bo.reprojection_rms_px):
-                rec.log("plots/reprojection_rms_px", rr.Scalars(float(bo.reprojection_rms_px)))
-            rec.log("plots/backend_ms", rr.Scalars(float(bo.backend_ms)))
-            rec.log("log", rr.TextLog(f"keyframe {fo.frame_index}: {fo.keyframe_reason.value}, gate {fo.gate.value}, "
-                                      f"backend {bo.status.value}"))
+            text += f", back end {bo.status.value}, {bo.n_landmarks} landmarks"
+        if est.note:
+            text += f"; {est.note}"
+        level = rr.TextLogLevel.INFO
+        if fo.gate not in (GateOutcome.PASS, GateOutcome.NOT_EVALUATED) or est.note:
+            level = rr.TextLogLevel.WARN
+        if status is BackendStatus.RECOVERED:
+            level = rr.TextLogLevel.ERROR
+        rec.log("log", rr.TextLog(text, level=level))
+
+    def flush(self) -> None:
+        """Send buffered scalars (as columns) and the revealed paths' tips."""
+        rec = self.rec
+        for key, (idx, ts, vals) in self._scalars.items():
+            if not idx:
+                continue
+            time_col = (rr.TimeColumn("time", timestamp=ts) if self._epoch
+                        else rr.TimeColumn("time", duration=ts))
+            rec.send_columns(key, indexes=[rr.TimeColumn("frame", sequence=idx), time_col],
+                             columns=rr.Scalars.columns(scalars=np.asarray(vals)))
+            idx.clear()
+            ts.clear()
+            vals.clear()
+        for p in self._paths:
+            p.flush(rec)
+        self._frames_since_flush = 0
 
     def _tail_starts(self, ids: np.ndarray) -> np.ndarray:
         """Where each track was at the oldest frame of the tail history it appears in, (N, 2)."""
         start = np.full((len(ids), 2), np.nan)
         for h_ids, h_px in reversed(self._tail_history):
-            _, a, b = np.intersect1d(ids, h_ids, return_indices=True)
+            _, a, b = np.intersect1d(ids, h_ids, assume_unique=True, return_indices=True)
             start[a] = h_px[b]
         return start
 
-    def _log_camera(self, frame: Frame, fo: FrontendOutput, cam_path: str) -> None:
+    def _log_camera(self, frame: Frame, fo: FrontendOutput) -> None:
         rec = self.rec
-        rec.log(f"{cam_path}/image", rr.Image(frame.image))
-        rec.log(f"{cam_path}/tracks", rr.Points2D(fo.pixels, colors=age_colors(fo.track_ages), radii=2.0))
+        ok, jpeg = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, self.cfg.viz.jpeg_quality])
+        if ok:
+            rec.log(f"{CAM_PATH}/image", rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
+        rec.log(f"{CAM_PATH}/tracks", rr.Points2D(fo.pixels, colors=age_colors(fo.track_ages), radii=2.0))
         if len(fo.outlier_pixels):
-            rec.log(f"{cam_path}/outliers", rr.Points2D(fo.outlier_pixels, colors=[[255, 40, 40]], radii=3.0))
+            rec.log(f"{CAM_PATH}/outliers", rr.Points2D(fo.outlier_pixels, colors=[OUTLIER_RGB], radii=3.0))
         else:
-            rec.log(f"{cam_path}/outliers", rr.Clear(recursive=False))
+            rec.log(f"{CAM_PATH}/outliers", rr.Clear(recursive=False))
         tail = self.cfg.viz.track_tail
         if tail > 1 and len(fo.track_ids):
             # Track tails as arrows from where each track was `tail` frames ago to where it is.
             start = self._tail_starts(fo.track_ids)
-            ok = np.all(np.isfinite(start), axis=1)
-            rec.log(f"{cam_path}/tails", rr.Arrows2D(origins=start[ok], vectors=fo.pixels[ok] - start[ok],
-                                                     colors=[[90, 200, 255]], radii=0.6))
+            ok_rows = np.all(np.isfinite(start), axis=1)
+            rec.log(f"{CAM_PATH}/tails", rr.Arrows2D(origins=start[ok_rows], vectors=fo.pixels[ok_rows] - start[ok_rows],
+                                                     colors=[TAIL_RGB], radii=0.6))
 
+    # ------------------------------------------------------------------ end of run
     def finish(self, result: RunResult, report=None) -> None:
-        """Log the final trajectory (one pose per frame), the same as trajectory.txt."""
+        """Log the final smoothed trajectory (one pose per frame, as trajectory.txt) at the last frame's
+        time, the run's numbers and the accuracy as recording properties, and close the recording."""
+        self.flush()
         traj = result.trajectory
         if len(traj) and result.last_frame_index >= 0:
-            last_frame = result.last_frame_index
-            self.rec.set_time("frame", sequence=last_frame)
-            self.rec.set_time("time", duration=float(traj.timestamps[-1]))
-            self.rec.log("world/estimate/final", rr.LineStrips3D([traj.positions], colors=[[40, 200, 90]], radii=0.02))
-            self.rec.log("world/estimate/base", _transform(traj.T_world_base[-1]))
+            self._set_time(result.last_frame_index, float(traj.timestamps[-1]))
+            self.rec.log("world/final", rr.LineStrips3D([traj.positions], colors=[FINAL_RGB], radii=0.025))
+        # The layout again, now with y ranges that leave the legends room above the data.
+        maxima = {unit: float(np.percentile(v, 99)) for unit, v in self._unit_values.items()
+                  if unit in ("ms", "px") and v}
+        self.rec.send_blueprint(blueprint(self.seq, self.cfg, maxima), make_active=True, make_default=True)
+        self.rec.send_property("run", rr.AnyValues(
+            frames=result.n_frames, keyframes=result.n_keyframes, skipped_frames=result.n_skipped,
+            wall_s=float(result.wall_s), fps=float(result.fps), backend_resets=result.n_resets,
+            monocular=_yes(result.monocular), interrupted=_yes(result.interrupted)))
+        acc = getattr(report, "accuracy", None) if report is not None else None
+        if acc is not None:
+            # Numbers only (None = not available, e.g. the ATE SE(3) of a monocular run).
+            values: dict[str, Any] = {k: float(v) for k, v in acc.as_dict().items()
+                                      if isinstance(v, (int, float)) and not isinstance(v, bool)}
+            values["summary"] = acc.summary()
+            self.rec.send_property("accuracy", rr.AnyValues(**values))
+            self.rec.log("log", rr.TextLog("accuracy: " + acc.summary(), level=rr.TextLogLevel.INFO))
         self.rec.flush()
         if self.path is not None:
             self.rec.disconnect()
