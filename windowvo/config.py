@@ -160,8 +160,9 @@ class VizConfig(_Section):
     rerun: RerunMode = Field(RerunMode.SAVE, description="Rerun viewer: off, save (OUTPUT/recording.rrd), spawn (native"
                                                          " window), connect (to viz.connect_url), serve (web viewer)")
     connect_url: str = Field("rerun+http://127.0.0.1:9876/proxy", description="viewer address for rerun: connect")
-    image_every: int = Field(1, ge=1)  # camera image and its tracks every N frames
-    jpeg_quality: int = Field(75, ge=1, le=100)  # the camera image is logged as JPEG of this quality
+    image_every: int = Field(1, ge=1, description="log the camera image and its overlays every N frames")
+    jpeg_quality: int = Field(75, ge=1, le=100, description="JPEG quality of the logged camera image (1-100); "
+                                                            "compressed images keep the recording cost low")
 
     @field_validator("rerun", mode="before")
     @classmethod
