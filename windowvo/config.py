@@ -27,6 +27,8 @@ class DatasetKind(str, enum.Enum):
     TUM = "tum"
     EUROC = "euroc"
     FOLDER = "folder"
+    ROSBAG = "rosbag"  # ROS 1 .bag, or a ROS 2 bag (folder with metadata.yaml, or a .db3 / .mcap file)
+    VIDEO = "video"  # a video file (mp4, mkv, avi) read with OpenCV
 
 
 class TrackerKind(str, enum.Enum):
@@ -213,6 +215,53 @@ class OdometrySynthesisConfig(_Section):
     seed: int = Field(0, description="random seed of that noise")
 
 
+class OdometrySourceKind(str, enum.Enum):
+    """Where a ROS bag's wheel odometry comes from."""
+
+    AUTO = "auto"  # the one nav_msgs/Odometry topic, else odom_frame -> base_frame on /tf, else none
+    MESSAGE = "message"  # nav_msgs/Odometry messages (odometry_topic, or the only such topic)
+    TF = "tf"  # the odom_frame -> base_frame transform on /tf
+    NONE = "none"  # no wheel odometry (monocular run)
+
+
+class RosbagConfig(_Section):
+    """Topics and frames of a ROS bag (``dataset: rosbag``); unset topics are auto-detected when unambiguous."""
+
+    image_topic: str | None = Field(None, description="sensor_msgs/Image or CompressedImage topic (default: the only "
+                                                      "image topic)")
+    camera_info_topic: str | None = Field(None, description="sensor_msgs/CameraInfo topic (default: the only one, or "
+                                                            "the one beside the image topic); the camera section wins")
+    odometry_source: OdometrySourceKind = Field(OdometrySourceKind.AUTO, description="wheel odometry: auto, message "
+                                                "(nav_msgs/Odometry), tf (odom_frame -> base_frame on /tf) or none")
+    odometry_topic: str | None = Field(None, description="nav_msgs/Odometry topic (default: the only one not named "
+                                                         "like ground truth)")
+    base_frame: str | None = Field(None, description="base frame of T_base_cam (default: the odometry's child frame, "
+                                                     "else base_link or base_footprint)")
+    camera_frame: str | None = Field(None, description="camera (optical) frame (default: the frame_id of camera_info, "
+                                                       "else of the images)")
+    odom_frame: str = Field("odom", description="parent frame of the wheel-odometry transform on /tf")
+    groundtruth_topic: str | None = Field(None, description="ground truth: PoseStamped or Odometry topic, the pose of "
+                                                            "the base (default: the only one named like ground truth)")
+    groundtruth_parent_frame: str | None = Field(None, description="or ground truth from /tf: the world frame ...")
+    groundtruth_child_frame: str | None = Field(None, description="... and the base frame it moves")
+    start_s: float = Field(0.0, ge=0, description="use images from this many seconds after the bag start (record "
+                                                  "time)")
+    end_s: float | None = Field(None, gt=0, description="... up to this many seconds after the bag start (none: the "
+                                                        "end)")
+
+    @model_validator(mode="after")
+    def _check(self) -> RosbagConfig:
+        if self.end_s is not None and self.end_s <= self.start_s:
+            raise ValueError("rosbag.end_s must be greater than rosbag.start_s")
+        if (self.groundtruth_parent_frame is None) != (self.groundtruth_child_frame is None):
+            raise ValueError("rosbag.groundtruth_parent_frame and groundtruth_child_frame go together")
+        if self.groundtruth_topic is not None and self.groundtruth_parent_frame is not None:
+            raise ValueError("rosbag: give either groundtruth_topic or groundtruth_parent/child_frame, not both")
+        if self.odometry_topic is not None and self.odometry_source in (OdometrySourceKind.TF, OdometrySourceKind.NONE):
+            raise ValueError(f"rosbag.odometry_topic is set but odometry_source is '{self.odometry_source.value}'")
+        return self
+
+
 class InputChecksConfig(_Section):
     black_frame_mean: float = Field(4.0, ge=0, description="frames with a lower mean grey level are skipped as black")
     max_time_gap_factor: float = Field(3.0, gt=1, description="a timestamp gap over this many nominal frame intervals "
@@ -230,7 +279,9 @@ class Config(_Section):
     max_frames: int | None = Field(None, gt=1, description="stop after this many frames (none: all)")
     progress: bool = Field(True, description="progress bar (on a terminal only)")
     camera: CameraConfig | None = Field(None, description="intrinsics and mounting for layouts that do not carry them "
-                                                          "(tum, folder)")
+                                                          "(tum, folder, video); for rosbag it wins over camera_info "
+                                                          "and /tf_static")
+    rosbag: RosbagConfig = Field(RosbagConfig(), description="topics and frames of a ROS bag (dataset: rosbag)")
     odometry_synthesis: OdometrySynthesisConfig = Field(OdometrySynthesisConfig(), description="synthetic wheel "
                                                                                                "odometry from ground "
                                                                                                "truth")

@@ -317,6 +317,14 @@ def load(cfg: Config) -> Sequence:
         seq = load_euroc(cfg.sequence)
     elif kind is DatasetKind.FOLDER:
         seq = load_folder(cfg.sequence, cfg.camera, cfg.fps)
+    elif kind is DatasetKind.ROSBAG:
+        from .rosbag import load_rosbag
+
+        seq = load_rosbag(cfg.sequence, cfg.rosbag, cfg.camera)
+    elif kind is DatasetKind.VIDEO:
+        from .video import load_video
+
+        seq = load_video(cfg.sequence, cfg.camera, cfg.fps)
     else:
         from .sequence import load_native
 

@@ -51,7 +51,7 @@ class DataProvider:
     def _mask(self, i: int) -> np.ndarray | None:
         if self.mask_folder is None:
             return None
-        name = self.seq.image_paths[i].name
+        name = self.seq.frame_name(i)
         p = self.mask_folder / name
         if not p.is_file():
             return None

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -44,6 +45,10 @@ class Sequence:
     def __len__(self) -> int:
         return len(self.image_paths)
 
+    def frame_name(self, i: int) -> str:
+        """File name of frame i (per-frame masks in ``frontend.mask_folder`` use the same name)."""
+        return self.image_paths[i].name
+
     def read_image(self, i: int) -> np.ndarray:
         """Grayscale uint8 image of frame i; raises FrameError when it cannot be used."""
         p = self.image_paths[i]
@@ -56,6 +61,51 @@ class Sequence:
                 f"{self.camera.width}x{self.camera.height}"
             )
         return img
+
+
+class FrameSource(Protocol):
+    """Frames decoded on demand from a container (a ROS bag, a video file).
+
+    Reads are cheapest in increasing index order (a forward iterator); an earlier index
+    restarts the underlying reader.
+    """
+
+    def read(self, i: int) -> np.ndarray:
+        """Grayscale uint8 image of frame i; raises FrameError when that frame cannot be decoded."""
+        ...
+
+    def close(self) -> None: ...
+
+
+@dataclass
+class StreamedSequence(Sequence):
+    """A sequence whose frames live in one container file, decoded on demand (``image_paths`` is empty).
+
+    Only the timestamps are held in memory, so memory stays flat for any length.
+    """
+
+    source: FrameSource | None = None
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def frame_name(self, i: int) -> str:
+        return f"{i:06d}.png"
+
+    def read_image(self, i: int) -> np.ndarray:
+        if self.source is None:
+            raise FrameError(f"frame {i}: the sequence has no frame source")
+        img = self.source.read(i)
+        if img.shape != (self.camera.height, self.camera.width):
+            raise FrameError(
+                f"frame {i}: size {img.shape[1]}x{img.shape[0]} differs from camera "
+                f"{self.camera.width}x{self.camera.height}"
+            )
+        return img
+
+    def close(self) -> None:
+        if self.source is not None:
+            self.source.close()
 
 
 def list_images(folder: Path) -> list[Path]:
