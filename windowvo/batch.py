@@ -605,8 +605,19 @@ def summary_lines(result: BatchResult) -> Iterable[str]:
     yield f"results: {result.files['csv']}  report: {result.files['report']}  plot: {result.files['plot']}"
 
 
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    import signal
+    import threading
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        # SIGTERM stops like Ctrl-C: runs in flight are stopped, Ray is shut down, nothing is orphaned.
+        previous = signal.signal(signal.SIGTERM, _raise_interrupt)
     try:
         result = run_batch(args.spec, ExecutorKind(args.executor), args.jobs or _default_jobs(), args.address,
                            args.force, progress=not args.no_progress)
@@ -614,8 +625,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"windowvo: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("windowvo: batch interrupted", file=sys.stderr)
+        print("windowvo: batch interrupted; finished runs are kept and reused by the next invocation", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     print("\n".join(summary_lines(result)))
     return 1 if result.n_failed else 0
 

@@ -28,6 +28,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
@@ -38,6 +39,22 @@ from typing import Any, Protocol
 from .errors import WindowVOError
 
 ERROR_PREFIX = "windowvo: error:"
+PARENT_PID_ENV = "WINDOWVO_PARENT_PID"
+# ``python -c _BOOT MODULE ARGS`` is ``python -m MODULE ARGS`` that also dies (SIGTERM: it writes what it
+# has) when the process that started it dies, e.g. a Ray worker killed by ray.shutdown() (Linux prctl).
+_BOOT = (
+    "import ctypes, os, runpy, signal, sys\n"
+    "try:\n"
+    "    ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))\n"  # 1 = PR_SET_PDEATHSIG
+    "except (OSError, AttributeError):\n"
+    "    pass\n"
+    f"if os.getppid() != int(os.environ.get('{PARENT_PID_ENV}', os.getppid())):\n"
+    "    sys.exit(143)\n"  # the parent died before prctl took effect
+    "sys.argv = sys.argv[1:]\n"
+    "runpy.run_module(sys.argv[0], run_name='__main__', alter_sys=True)\n"
+)
+_live: set[subprocess.Popen] = set()  # task subprocesses running in this process
+_live_lock = threading.Lock()
 TERM_GRACE_S = 10.0  # after a time-out: SIGTERM (the run writes what it has), then SIGKILL
 
 
@@ -144,12 +161,23 @@ def _terminate(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
+def terminate_running() -> int:
+    """SIGTERM every task subprocess this process is running (they write what they have); returns how many."""
+    with _live_lock:
+        procs = list(_live)
+    for proc in procs:
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGTERM)
+    return len(procs)
+
+
 def run_task(task: Task) -> TaskOutcome:
     """Run one task in a subprocess and report how it ended (never raises for a failing job)."""
     t0 = time.perf_counter()
     env = dict(os.environ)
     env.update(task.env)
     env.setdefault("PYTHONUNBUFFERED", "1")
+    env[PARENT_PID_ENV] = str(os.getpid())
     with contextlib.ExitStack() as stack:
         result_path: Path | None = Path(task.result_json) if task.result_json else None
         args = list(task.args)
@@ -157,6 +185,8 @@ def run_task(task: Task) -> TaskOutcome:
             tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="windowvo_task_")))
             result_path = tmp / "result.pickle"
             args = ["-m", "windowvo.executors", str(result_path)]
+        if len(args) >= 2 and args[0] == "-m":
+            args = ["-c", _BOOT, *args[1:]]
         if task.log_path:
             Path(task.log_path).parent.mkdir(parents=True, exist_ok=True)
             err_fh = stack.enter_context(open(task.log_path, "w+"))
@@ -167,6 +197,8 @@ def run_task(task: Task) -> TaskOutcome:
                                     stderr=err_fh, env=env)
         except OSError as err:
             return TaskOutcome(task.key, TaskStatus.FAILED, f"cannot start: {err}", time.perf_counter() - t0)
+        with _live_lock:
+            _live.add(proc)
         timed_out = False
         try:
             proc.communicate(input=task.call, timeout=task.timeout_s)
@@ -176,6 +208,9 @@ def run_task(task: Task) -> TaskOutcome:
         except BaseException:
             _terminate(proc)
             raise
+        finally:
+            with _live_lock:
+                _live.discard(proc)
         wall = time.perf_counter() - t0
         err_fh.seek(0)
         stderr = err_fh.read()
@@ -221,11 +256,15 @@ class LocalExecutor:
                     for fut in done:
                         yield fut.result()
             finally:
-                for fut in pending:
-                    fut.cancel()
+                if pending:  # interrupted (Ctrl-C, SIGTERM, the consumer stopped): stop the runs in flight
+                    for fut in pending:
+                        fut.cancel()
+                    terminate_running()
 
 
 RAY_OBJECT_STORE_BYTES = 100 * 1024**2  # outcomes are small; keep the shared-memory store small
+RAY_MAX_RETRIES = 1  # a task whose Ray worker or node died runs once more
+RAY_POLL_S = 0.5
 
 
 class RayExecutor:
@@ -246,6 +285,8 @@ class RayExecutor:
         import ray
 
         todo = list(tasks)
+        in_main = threading.current_thread() is threading.main_thread()
+        term_handler = signal.getsignal(signal.SIGTERM) if in_main else None
         try:
             if self.address:
                 ray.init(address=self.address, log_to_driver=False)
@@ -257,12 +298,16 @@ class RayExecutor:
                 ray.shutdown()
             first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
             raise ExecutorUnavailableError(f"cannot start Ray ({self.address or 'local'}): {first}") from None
+        if callable(term_handler):  # ray.init replaces a Python SIGTERM handler (e.g. the batch's clean stop)
+            signal.signal(signal.SIGTERM, term_handler)
         try:
-            remote = ray.remote(num_cpus=1, max_retries=0)(run_task)
+            # run_task never raises for a failing job, so a retry only happens when a Ray worker or node dies.
+            remote = ray.remote(num_cpus=1, max_retries=RAY_MAX_RETRIES)(run_task)
             refs = {remote.remote(t): t for t in todo}
             pending = list(refs)
             while pending:
-                done, pending = ray.wait(pending, num_returns=1)
+                # Collect everything finished within a short wait (cheap with thousands of tasks in flight).
+                done, pending = ray.wait(pending, num_returns=len(pending), timeout=RAY_POLL_S)
                 for ref in done:
                     try:
                         yield ray.get(ref)
