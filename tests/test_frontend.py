@@ -3,11 +3,12 @@
 import numpy as np
 import pytest
 
+from windowvo.camera import CameraModel
 from windowvo.config import FrontendConfig, GateConfig, KeyframeConfig
 from windowvo.frontend.frontend import Frontend, two_view_geometry
-from windowvo.frontend.tracker import KLTTracker, ORBTracker
+from windowvo.frontend.tracker import KLTTracker, ORBTracker, cell_counts
 from windowvo.geometry import inv_T, rotation_angle
-from windowvo.synth.generate import SynthSpec, build_world
+from windowvo.synth.generate import LensPreset, SynthSpec, build_world, lens_fields
 from windowvo.synth.paths import PathKind
 from windowvo.synth.scene import Renderer
 from windowvo.types import Frame, GateOutcome
@@ -169,3 +170,111 @@ def test_track_history_is_kept_for_live_tracks(world):
     assert [f for f, _, _ in hist] == list(range(8 - len(hist), 8))
     assert np.allclose(hist[-1][1:], ts.pixels[np.argmax(ts.ages)])
     assert len(tr.history(oldest, last=3)) == 3
+
+
+# ---------------------------------------------------------------------------- lenses
+
+
+@pytest.fixture(scope="module")
+def fisheye_world():
+    w = build_world(SynthSpec(path=PathKind.LOOP, duration_s=12.0, seed=11, **lens_fields(LensPreset.FISHEYE)))
+    return w, Renderer(w.scene, w.camera)
+
+
+def test_fisheye_tracks_follow_ground_truth(fisheye_world):
+    """KLT in the distorted fisheye image, checked against the lens projection of the true points."""
+    w, r = fisheye_world
+    cam = w.camera
+    tr = KLTTracker(FrontendConfig())
+    img0, T0 = render(fisheye_world, 3.0)
+    first = tr.track(img0)
+    p_world = r.surface_points(T0, first.pixels.astype(float), 3.0)
+    for i in range(1, 11):
+        img, T = render(fisheye_world, 3.0 + i / 20.0)
+        ts = tr.track(img)
+    _common, a, b = np.intersect1d(first.ids, ts.ids, return_indices=True)
+    uv_gt, _z = project(cam, T, p_world[a])
+    visible = np.linalg.norm(r.surface_points(T, uv_gt, 3.5) - p_world[a], axis=1) < 0.05
+    err = np.linalg.norm(ts.pixels[b][visible] - uv_gt[visible], axis=1)
+    assert visible.sum() > 80
+    # Coarser than the pinhole's (0.3 px): f = 230 px, and the tracks 60-90 deg off-axis lie on the
+    # floor right beside the robot, where patches deform fastest (about 1 px after 10 frames).
+    assert np.median(err) < 0.6, np.median(err)
+    assert np.mean(err < 2.0) > 0.85
+    assert np.degrees(cam.ray_angle(ts.pixels[b][visible])).max() > 60.0  # far off-axis tracks too
+
+
+@pytest.mark.parametrize("bound_deg", [60.0, 75.0])
+def test_field_of_view_bound_and_undistorted_pixels(fisheye_world, bound_deg):
+    """Only tracks within the bound reach the back end, and their pinhole pixels are where an ideal
+    pinhole camera with the same K sees the true point (up to tracking noise times the stretch)."""
+    w, r = fisheye_world
+    cam = w.camera
+    fe = Frontend(cam, FrontendConfig(max_ray_angle_deg=bound_deg), KeyframeConfig(), GateConfig())
+    img0, T0 = render(fisheye_world, 3.0)
+    fo0 = fe.process(Frame(0, 3.0, img0))
+    p_world = dict(zip(fo0.track_ids.tolist(), r.surface_points(T0, fo0.pixels, 3.0)))
+    angles = []
+    for i in range(1, 11):
+        img, T = render(fisheye_world, 3.0 + i / 20.0)
+        fo = fe.process(Frame(i, 3.0 + i / 20.0, img))
+        angles.append(np.degrees(cam.ray_angle(fo.pixels)))
+    angles_all = np.concatenate(angles)
+    assert angles_all.max() <= bound_deg + 1e-6
+    assert angles_all.max() > bound_deg - 10.0  # the bound, not the lens, limits the tracks
+    assert fo.pixel_sigma_scale is not None and fo.pixel_sigma_scale.shape == (len(fo.track_ids),)
+    sel = [j for j, tid in enumerate(fo.track_ids.tolist()) if tid in p_world]
+    P = np.stack([p_world[int(fo.track_ids[j])] for j in sel])
+    T_cw = inv_T(T)
+    pc = P @ T_cw[:3, :3].T + T_cw[:3, 3]
+    ok = np.isfinite(pc).all(axis=1) & (np.linalg.norm(r.surface_points(T, fo.pixels[sel], 3.5) - P, axis=1) < 0.05)
+    ideal = pc[ok, :2] / pc[ok, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+    err = np.linalg.norm(fo.pixels_undistorted[sel][ok] - ideal, axis=1)
+    scale = fo.pixel_sigma_scale[sel][ok]
+    assert ok.sum() > 50
+    assert scale.min() >= 1.0 - 1e-9 and scale.max() > 2.0  # the far tracks are stretched
+    # in image pixels (error / stretch) the undistorted tracks are as good as KLT itself on this lens
+    # (test_fisheye_tracks_follow_ground_truth)
+    assert np.median(err / scale) < 0.6, np.median(err / scale)
+    assert np.mean(err / scale < 2.0) > 0.85
+
+
+def test_pinhole_front_end_is_unbounded_and_unstretched(world):
+    """A normal lens (86 deg) lies inside the default bound: no mask, every stretch exactly 1."""
+    w, _r = world
+    fe = Frontend(w.camera, FrontendConfig(), KeyframeConfig(), GateConfig())
+    assert fe.static_mask is None
+    img, _ = render(world, 2.0)
+    fo = fe.process(Frame(0, 2.0, img))
+    assert len(fo.track_ids) > 100 and np.all(fo.pixel_sigma_scale == 1.0)
+
+
+def test_relative_pose_from_fisheye_pair(fisheye_world):
+    w, _r = fisheye_world
+    cam = w.camera
+    fe = Frontend(cam, FrontendConfig(max_features=300), KeyframeConfig(), GateConfig())
+    img0, T0 = render(fisheye_world, 2.0)
+    f0 = fe.process(Frame(0, 2.0, img0))
+    for i in range(1, 16):
+        img, T1 = render(fisheye_world, 2.0 + i / 20.0)
+        f1 = fe.process(Frame(i, 2.0 + i / 20.0, img))
+    _common, a, b = np.intersect1d(f0.track_ids, f1.track_ids, return_indices=True)
+    res = two_view_geometry(cam.undistort_normalized(f0.pixels[a]), cam.undistort_normalized(f1.pixels[b]),
+                            cam.fx, 0.5, 0.999)
+    T_c1_c0 = inv_T(T1) @ T0
+    rot_err = np.degrees(rotation_angle(res.R_cur_kf.T @ T_c1_c0[:3, :3]))
+    t_gt = T_c1_c0[:3, 3] / np.linalg.norm(T_c1_c0[:3, 3])
+    dir_err = np.degrees(np.arccos(np.clip(np.dot(res.t_cur_kf, t_gt), -1, 1)))
+    assert rot_err < 0.1, rot_err
+    assert dir_err < 1.0, dir_err
+
+
+def test_grid_cell_counts_and_spread():
+    cam = CameraModel(640, 480, 300.0, 300.0, 320.0, 240.0)
+    # 8 x 6 cells of 80 x 80 px: two points in cell (row 0, col 0), one in (5, 7), one on the far border
+    px = np.array([[1.0, 1.0], [79.0, 79.0], [639.0, 479.0], [560.0, 400.0], [80.0, 0.0]])
+    counts = cell_counts(px, (480, 640), 8, 6)
+    assert counts[0, 0] == 2 and counts[5, 7] == 2 and counts[0, 1] == 1 and counts.sum() == 5
+    fe = Frontend(cam, FrontendConfig(), KeyframeConfig(), GateConfig())
+    assert fe.spread(px) == 3 / 48
+    assert fe.spread(np.zeros((0, 2))) == 0.0

@@ -1,20 +1,25 @@
-"""The renderer's geometry: the same floor point looks the same from two poses."""
+"""The renderer's geometry: the same floor point looks the same from two poses, for every lens;
+ranges match the known floor geometry."""
 
 import numpy as np
+import pytest
 
 from windowvo.geometry import inv_T
-from windowvo.synth.generate import SynthSpec, build_world
+from windowvo.synth.generate import LensPreset, SynthSpec, build_world, lens_fields
 from windowvo.synth.paths import PathKind
 from windowvo.synth.scene import Renderer
 
+LENSES = list(LensPreset)
 
-def test_floor_points_are_photometrically_consistent():
-    world = build_world(SynthSpec(path=PathKind.LOOP, duration_s=10.0, seed=2))
+
+@pytest.mark.parametrize("lens", LENSES)
+def test_floor_points_are_photometrically_consistent(lens):
+    world = build_world(SynthSpec(path=PathKind.LOOP, duration_s=10.0, seed=2, **lens_fields(lens)))
     cam = world.camera
     r = Renderer(world.scene, cam)
     T0 = world.T_world_base(2.0) @ cam.T_base_cam
     T1 = world.T_world_base(2.3) @ cam.T_base_cam
-    img0, depth0 = r.render(T0, 2.0)
+    img0, _ = r.render(T0, 2.0)
     img1, _ = r.render(T1, 2.3)
     rng = np.random.default_rng(0)
     uv0 = rng.uniform([40, 280], [600, 400], (400, 2))  # lower image: the floor
@@ -41,9 +46,41 @@ def test_floor_points_are_photometrically_consistent():
     shuffled = np.median(np.abs(a - rng.permutation(b)))
     assert err < 0.02, err
     assert shuffled > 5 * err
-    # the depth buffer agrees with the ray-cast points
-    d0 = depth0[uv0[:, 1].round().astype(int), uv0[:, 0].round().astype(int)]
-    assert np.all(np.isfinite(d0[on_floor]))
+    if lens is LensPreset.FISHEYE:  # the checked floor points include rays far off the axis
+        assert np.degrees(cam.ray_angle(uv0[on_floor])).max() > 60.0
+
+
+@pytest.mark.parametrize("lens", LENSES)
+def test_range_buffer_matches_the_floor_geometry(lens):
+    """In a room without obstacles every downward ray ends on the floor (z = 0) at the known range
+    h / (-d_z) from a camera at height h along the unit world direction d, walls permitting."""
+    world = build_world(SynthSpec(path=PathKind.LOOP, duration_s=10.0, seed=2, n_obstacles=0, **lens_fields(lens)))
+    cam = world.camera
+    r = Renderer(world.scene, cam)
+    T_wc = world.T_world_base(3.0) @ cam.T_base_cam
+    _img, range_m = r.render(T_wc, 3.0)
+    d_world = cam.pixel_bearings() @ T_wc[:3, :3].T
+    h = T_wc[2, 3]
+    with np.errstate(divide="ignore"):
+        expected = np.where(d_world[:, 2] < -1e-3, h / -d_world[:, 2], np.inf)
+    p_floor = T_wc[:3, 3] + expected[:, None] * d_world
+    planes = world.scene.planes
+    half_x, half_y = planes[0].length_u / 2, planes[0].length_v / 2  # the floor spans the room
+    # well inside the room (a wall could not be in front) and not too grazing
+    inside = (np.abs(p_floor[:, 0]) < half_x - 0.5) & (np.abs(p_floor[:, 1]) < half_y - 0.5) & (expected < 6.0)
+    inside &= r.valid.ravel()
+    got = range_m.ravel()
+    assert inside.sum() > 0.3 * inside.size
+    assert np.abs(got[inside] - expected[inside]).max() < 1e-3 * expected[inside].max()
+    # upward rays end on a wall (|x| or |y| at the room's half size, below the wall top) or on nothing
+    up = d_world[:, 2] > 0.05
+    hit = up & np.isfinite(got)
+    assert hit.sum() > 1000 and (up & ~hit).sum() > 1000  # walls and the open space above them
+    p_hit = T_wc[:3, 3] + got[hit, None] * d_world[hit]
+    on_wall = (np.abs(np.abs(p_hit[:, 0]) - half_x) < 0.01) | (np.abs(np.abs(p_hit[:, 1]) - half_y) < 0.01)
+    assert np.all(on_wall) and np.all(p_hit[:, 2] <= 3.0 + 1e-3)
+    if lens is LensPreset.FISHEYE:  # the check reaches rays beside and behind the lens plane
+        assert np.degrees(cam.ray_angle(cam.pixel_grid()[inside])).max() > 90.0
 
 
 def test_rendering_is_deterministic():

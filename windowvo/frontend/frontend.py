@@ -151,6 +151,7 @@ class Frontend:
         if fov is not None:
             static_mask = fov if static_mask is None else np.minimum(static_mask, fov)
         self.static_mask = static_mask
+        self.max_tan_ray_angle = float(np.tan(np.radians(cfg.max_ray_angle_deg)))
         self.clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if cfg.clahe else None
         self.kf_ids: np.ndarray | None = None
         self.kf_xn: np.ndarray | None = None
@@ -184,10 +185,12 @@ class Frontend:
                 image = cv2.convertScaleAbs(image, alpha=self.cfg.gain_target / mean)
         tracks = self.tracker.track(image, self._mask(frame))
         xn = self.camera.undistort_normalized(tracks.pixels)
-        beyond = ~np.all(np.isfinite(xn), axis=1)
+        # The mask bounds the field of view to whole pixels; sub-pixel refinement and KLT can leave a
+        # track just past its edge. End every track beyond the bound (a ray at 90 degrees or more
+        # has no pinhole coordinates at all: nan).
+        with np.errstate(invalid="ignore"):
+            beyond = ~(np.hypot(xn[:, 0], xn[:, 1]) <= self.max_tan_ray_angle)
         if beyond.any():
-            # Sub-pixel positions just past the field-of-view mask's edge (rays at 90 degrees
-            # or more have no pinhole coordinates): end those tracks.
             self.tracker.drop(tracks.ids[beyond])
             tracks.ids, tracks.pixels, tracks.ages = tracks.ids[~beyond], tracks.pixels[~beyond], tracks.ages[~beyond]
             xn = xn[~beyond]
@@ -196,17 +199,18 @@ class Frontend:
         two_view = None
         kf_pair = None
         n_common = 0
-        if self.kf_ids is not None and len(tracks.ids):
+        if self.kf_ids is not None and self.kf_xn is not None and len(tracks.ids):
             common, i_cur, i_kf = np.intersect1d(tracks.ids, self.kf_ids, return_indices=True)
             n_common = len(common)
+            kf_xn = self.kf_xn
             if n_common:
-                d = (xn[i_cur] - self.kf_xn[i_kf]) * self.focal
+                d = (xn[i_cur] - kf_xn[i_kf]) * self.focal
                 parallax = float(np.median(np.linalg.norm(d, axis=1)))
             if n_common >= 8 and parallax > 0.5:
                 two_view = essential_ransac(
-                    self.kf_xn[i_kf], xn[i_cur], self.focal, self.cfg.ransac_threshold_px, self.cfg.ransac_confidence
+                    kf_xn[i_kf], xn[i_cur], self.focal, self.cfg.ransac_threshold_px, self.cfg.ransac_confidence
                 )
-                kf_pair = (self.kf_xn[i_kf], xn[i_cur])
+                kf_pair = (kf_xn[i_kf], xn[i_cur])
                 bad_ids = common[~two_view.inlier_mask]
                 if len(bad_ids):
                     bad = np.isin(tracks.ids, bad_ids)
@@ -232,7 +236,7 @@ class Frontend:
             out.inlier_ratio = float(two_view.inlier_mask.mean())
         reason = (KeyframeReason.FIRST if self.kf_ids is None
                   else self._keyframe_reason(out, n_common, odom_motion, force_keyframe))
-        if reason not in (KeyframeReason.NONE, KeyframeReason.FIRST) and two_view is not None:
+        if reason not in (KeyframeReason.NONE, KeyframeReason.FIRST) and two_view is not None and kf_pair is not None:
             # Pose recovery (cheirality, rotation-compensated parallax) only where the gates need it.
             recover_relative_pose(two_view, kf_pair[0], kf_pair[1], self.focal)
             out.cheirality_ratio = two_view.cheirality_ratio
@@ -251,7 +255,7 @@ class Frontend:
         self, out: FrontendOutput, n_common: int, odom_motion: tuple[float, float] | None, force: bool
     ) -> KeyframeReason:
         kc = self.kf_cfg
-        tracked_ratio = n_common / max(len(self.kf_ids), 1)
+        tracked_ratio = n_common / max(len(self.kf_ids) if self.kf_ids is not None else 0, 1)
         wheels_still = odom_motion is None or (
             odom_motion[0] < kc.standstill_distance_m and odom_motion[1] < kc.standstill_rotation_rad
         )

@@ -143,9 +143,8 @@ class KLTTracker(_TrackStore):
     def __init__(self, cfg: FrontendConfig):
         super().__init__(cfg)
         self.prev_pyr: np.ndarray | None = None
-        win = (cfg.klt_window_px, cfg.klt_window_px)
-        self.lk = dict(winSize=win, maxLevel=cfg.klt_levels,
-                       criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
+        self.lk_win = (cfg.klt_window_px, cfg.klt_window_px)
+        self.lk_crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
 
     def track(self, image: np.ndarray, mask: np.ndarray | None = None) -> TrackSet:
         self.frame += 1
@@ -154,8 +153,9 @@ class KLTTracker(_TrackStore):
         b = self.cfg.border_px
         if self.prev_pyr is not None and len(self.pts):
             p0 = self.pts.reshape(-1, 1, 2)
-            p1, st, err = cv2.calcOpticalFlowPyrLK(self.prev_pyr, pyr, p0, None, **self.lk)
-            p0b, stb, _ = cv2.calcOpticalFlowPyrLK(pyr, self.prev_pyr, p1, p0.copy(), **self.lk,
+            lk = dict(winSize=self.lk_win, maxLevel=self.cfg.klt_levels, criteria=self.lk_crit)
+            p1, st, err = cv2.calcOpticalFlowPyrLK(self.prev_pyr, pyr, p0, None, **lk)  # type: ignore[call-overload]
+            p0b, stb, _ = cv2.calcOpticalFlowPyrLK(pyr, self.prev_pyr, p1, p0.copy(), **lk,  # type: ignore[call-overload]
                                                    flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
             fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
             p1 = p1.reshape(-1, 2)
@@ -243,7 +243,7 @@ class ORBTracker(_TrackStore):
 
     def __init__(self, cfg: FrontendConfig):
         super().__init__(cfg)
-        self.orb = cv2.ORB_create(nfeatures=int(cfg.max_features * 2), fastThreshold=10)
+        self.orb = cv2.ORB.create(nfeatures=int(cfg.max_features * 2), fastThreshold=10)
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self.desc: np.ndarray | None = None
 

@@ -7,7 +7,8 @@ import sys
 import time
 
 from ..camera import DistortionModel
-from .generate import SynthSpec, WheelErrorModel, generate_sequence
+from ..errors import WindowVOError
+from .generate import LENSES, LensPreset, SynthSpec, WheelErrorModel, generate_sequence, lens_fields
 from .paths import PathKind
 
 
@@ -42,9 +43,14 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--height", type=int, default=480)
-    p.add_argument("--fx", type=float, default=340.0)
-    p.add_argument("--distortion-model", choices=[m.value for m in DistortionModel], default="none")
-    p.add_argument("--distortion", default="", help="comma-separated coefficients")
+    p.add_argument("--lens", choices=[k.value for k in LensPreset], default="pinhole",
+                   help="lens preset: pinhole (86 deg), radtan (104 deg, barrel), fisheye (equidistant, 161 deg "
+                        "horizontal, 202 deg diagonal); --fx, --distortion-model, --distortion override its values")
+    p.add_argument("--fx", type=float, default=None, help="focal length in pixels (fy = fx); default: the lens's")
+    p.add_argument("--distortion-model", choices=[m.value for m in DistortionModel], default=None,
+                   help="default: the lens's")
+    p.add_argument("--distortion", default=None,
+                   help="comma-separated coefficients: radtan k1,k2,p1,p2[,k3]; equidistant k1,k2,k3,k4")
     p.add_argument("--vibration-deg", type=float, default=0.0, help="roll/pitch vibration amplitude")
     p.add_argument("--ramp-height", type=float, default=0.0, help="ramp height in m (path=ramp uses 0.6 if 0)")
     p.add_argument("--obstacles", type=int, default=10)
@@ -65,10 +71,18 @@ def main(argv=None) -> int:
     p.add_argument("--low-contrast-frames", default="", help="index ranges 'a,b;c,d' (texture washed out)")
     a = p.parse_args(argv)
     try:
+        lens = lens_fields(LensPreset(a.lens))
+        if a.fx is not None:
+            lens["fx"] = a.fx
+        if a.distortion_model is not None:
+            lens["distortion_model"] = DistortionModel(a.distortion_model)
+            if a.distortion is None and lens["distortion_model"] is not LENSES[LensPreset(a.lens)].distortion_model:
+                lens["distortion"] = ()
+        if a.distortion is not None:
+            lens["distortion"] = tuple(float(x) for x in a.distortion.split(",") if x.strip())
         spec = SynthSpec(
             path=PathKind(a.path), duration_s=a.duration, fps=a.fps, speed=a.speed, seed=a.seed,
-            width=a.width, height=a.height, fx=a.fx, distortion_model=DistortionModel(a.distortion_model),
-            distortion=tuple(float(x) for x in a.distortion.split(",") if x.strip()),
+            width=a.width, height=a.height, **lens,
             vibration_deg=a.vibration_deg, ramp_height_m=a.ramp_height, n_obstacles=a.obstacles, n_moving=a.moving,
             image_noise=a.image_noise, exposure_variation=a.exposure, exposure_jumps=a.exposure_jumps,
             wheel=WheelErrorModel(scale_error=a.odo_scale_error, yaw_bias_per_m=a.odo_yaw_bias,
@@ -80,8 +94,8 @@ def main(argv=None) -> int:
         )
         t0 = time.perf_counter()
         generate_sequence(a.out, spec, progress=True)
-    except (ValueError, OSError) as err:
-        print(f"windowvo.synth: error: {err}", file=sys.stderr)
+    except (WindowVOError, ValueError, OSError) as err:
+        print(f"windowvo: error: {err}", file=sys.stderr)
         return 2
     print(f"wrote {a.out} in {time.perf_counter() - t0:.1f} s")
     return 0

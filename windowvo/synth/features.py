@@ -65,7 +65,8 @@ def simulate_features(
             last = d
     track_of = -np.ones(n_landmarks, np.int64)  # current track id of each landmark
     next_track = 0
-    kfs, gts = [], []
+    kfs: list[FrontendOutput] = []
+    gts: list[np.ndarray] = []
     for t in kf_times:
         T_wb = world.T_world_base(t)
         T_cw = inv_T(T_wb @ cam.T_base_cam)

@@ -6,6 +6,7 @@ odometry.csv, groundtruth.txt). Everything is deterministic for ``spec.seed``.
 
 from __future__ import annotations
 
+import enum
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -20,6 +21,34 @@ from ..io.sequence import write_camera_yaml
 from ..io.trajectory import write_tum
 from .paths import PathKind, PlanarPath, make_path
 from .scene import MovingBox, Ramp, Renderer, Scene, make_room_scene
+
+
+class LensPreset(str, enum.Enum):
+    """Ready-made lenses for 640x480 sequences."""
+
+    PINHOLE = "pinhole"  # no distortion, 86 deg horizontal field of view
+    RADTAN = "radtan"  # barrel distortion of a wide-angle robot camera: 104 deg horizontal, 116 deg diagonal
+    FISHEYE = "fisheye"  # equidistant: 161 deg horizontal, 202 deg diagonal (the corners see behind the lens)
+
+
+@dataclass(frozen=True)
+class Lens:
+    fx: float  # fy is the same
+    distortion_model: DistortionModel
+    distortion: tuple[float, ...]
+
+
+LENSES: dict[LensPreset, Lens] = {
+    LensPreset.PINHOLE: Lens(340.0, DistortionModel.NONE, ()),
+    LensPreset.RADTAN: Lens(340.0, DistortionModel.RADTAN, (-0.28, 0.07, 0.0006, -0.0004)),
+    LensPreset.FISHEYE: Lens(230.0, DistortionModel.EQUIDISTANT, (-0.01, 0.003, -0.0005, 0.00003)),
+}
+
+
+def lens_fields(preset: LensPreset) -> dict:
+    """The :class:`SynthSpec` fields of a lens preset (``SynthSpec(**lens_fields(...), ...)``)."""
+    lens = LENSES[LensPreset(preset)]
+    return {"fx": lens.fx, "distortion_model": lens.distortion_model, "distortion": lens.distortion}
 
 
 @dataclass
@@ -79,7 +108,7 @@ class SyntheticWorld:
 
 def camera_for(spec: SynthSpec) -> CameraModel:
     R_bc = R_BASE_CAM_FORWARD @ rot_x(-np.deg2rad(spec.camera_pitch_deg))
-    T_base_cam = make_T(R_bc, [0.25, 0.0, spec.camera_height_m])
+    T_base_cam = make_T(R_bc, np.array([0.25, 0.0, spec.camera_height_m]))
     return CameraModel(
         spec.width,
         spec.height,
@@ -116,12 +145,12 @@ def base_pose(planar: PlanarPath, scene: Scene, t: float, vib_deg: float, seed: 
         pitch = a * (0.6 * np.sin(2 * np.pi * 2.3 * t + 1.1 + ph) + 0.4 * np.sin(2 * np.pi * 5.1 * t))
         R = R @ rot_y(pitch) @ rot_x(roll)
         z += 0.004 * np.sin(2 * np.pi * 3.1 * t)
-    return make_T(R, [x, y, z])
+    return make_T(R, np.array([x, y, z]))
 
 
 def _place_obstacles(rng, planar: PlanarPath, n: int, half: float, clearance: float = 1.3):
     pts = planar.points()[::20]
-    out = []
+    out: list[tuple[float, float, float, float, float]] = []
     tries = 0
     while len(out) < n and tries < 5000:
         tries += 1
@@ -195,8 +224,8 @@ def frame_gain(spec: SynthSpec, i: int, rng: np.random.Generator) -> float:
 
 def generate_sequence(out: Path, spec: SynthSpec, progress: bool = False) -> SyntheticWorld:
     out = Path(out)
+    world = build_world(spec)  # validates the camera before anything is written
     (out / "images").mkdir(parents=True, exist_ok=True)
-    world = build_world(spec)
     cam = world.camera
     renderer = Renderer(world.scene, cam, seed=spec.seed) if spec.write_images else None
     n = round(spec.duration_s * spec.fps) + 1

@@ -195,7 +195,8 @@ def make_texture(seed: int, size: int = TEX_SIZE) -> np.ndarray:
             folded += canvas[i * size : (i + 1) * size, j * size : (j + 1) * size]
     tex = tex + folded
     pad = 8
-    tex = cv2.GaussianBlur(cv2.copyMakeBorder(tex, pad, pad, pad, pad, cv2.BORDER_WRAP), (0, 0), 0.8)[pad:-pad, pad:-pad]
+    blurred = cv2.GaussianBlur(cv2.copyMakeBorder(tex, pad, pad, pad, pad, cv2.BORDER_WRAP), (0, 0), 0.8)
+    tex = np.asarray(blurred, np.float32)[pad:-pad, pad:-pad]
     tex -= tex.min()
     tex /= max(float(tex.max()), 1e-6)
     return 0.12 + 0.76 * tex
@@ -216,7 +217,7 @@ class MipAtlas:
             x += padded.shape[1]
             if lvl + 1 < levels:
                 wrapped = cv2.copyMakeBorder(img, 8, 8, 8, 8, cv2.BORDER_WRAP)
-                img = cv2.pyrDown(wrapped)[4:-4, 4:-4]
+                img = np.asarray(cv2.pyrDown(wrapped), np.float32)[4:-4, 4:-4]
         h = blocks[0].shape[0]
         self.atlas = np.zeros((h, x), np.float32)
         xo = 0
@@ -231,7 +232,7 @@ class MipAtlas:
         lv0 = np.floor(level).astype(np.int32)
         frac = (level - lv0).astype(np.float32)
         lv1 = np.minimum(lv0 + 1, len(self.levels) - 1)
-        out = None
+        out = np.zeros(shape, np.float32)
         for lv, wgt in ((lv0, 1.0 - frac), (lv1, frac)):
             size = self.sizes[lv]
             scale = np.float32(1.0) / (np.float32(2.0) ** lv.astype(np.float32))
@@ -242,7 +243,7 @@ class MipAtlas:
             mx = (ss + self.offsets[lv]).astype(np.float32).reshape(shape)
             my = (tt + MIP_PAD).astype(np.float32).reshape(shape)
             val = cv2.remap(self.atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            out = val * wgt.reshape(shape) if out is None else out + val * wgt.reshape(shape)
+            out += val * wgt.reshape(shape)
         return out
 
 
@@ -302,7 +303,14 @@ class Renderer:
         H, W = camera.height, camera.width
         self.shape = (H, W)
         self.wide = camera.distortion_model is DistortionModel.EQUIDISTANT
+        grid = camera.pixel_grid()
         bearings = camera.pixel_bearings()
+        # Pixels where the lens model cannot be inverted (a distortion polynomial that folds back
+        # before the image corner) see nothing, like the dark rim outside a fisheye's image circle.
+        with np.errstate(invalid="ignore", divide="ignore"):
+            back = camera.project(bearings)
+        self.valid = (np.linalg.norm(back - grid, axis=1) < 0.01).reshape(H, W)
+        bearings[~self.valid.ravel()] = (0.0, 0.0, 1.0)
         rays = bearings if self.wide else bearings / bearings[:, 2:3]
         self.rays_cam = rays.astype(np.float32).reshape(H, W, 3)
         self.ray_len = np.sqrt((self.rays_cam * self.rays_cam).sum(axis=2))
@@ -431,6 +439,7 @@ class Renderer:
             t_tex[rs, cs][ok] = (v[ok] + p.tex_offset[1]) / TEXEL_M
             cosb[rs, cs][ok] = np.abs(dn[ok]) / np.linalg.norm(rays[ok], axis=1)
             bright[rs, cs][ok] = p.brightness
+        tbuf[~self.valid] = np.inf
         hit = np.isfinite(tbuf)
         range_m = tbuf * self.ray_len  # ray parameter -> metres along the ray
         footprint = np.where(hit, range_m, 1.0) * self.base_footprint / np.sqrt(np.maximum(cosb, 0.05))
