@@ -162,8 +162,11 @@ def merge_config(dst: dict, src: dict) -> dict:
 
 
 def config_hash(resolved: dict) -> str:
-    """Hash of a resolved config without the per-run fields that do not change the result."""
+    """Hash of a resolved config (and the windowvo version) without the per-run fields that do not change the result."""
+    from . import __version__
+
     core = {k: v for k, v in resolved.items() if k not in ("output", "progress")}
+    core["windowvo_version"] = __version__
     return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
