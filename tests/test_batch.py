@@ -197,7 +197,7 @@ def test_ray_batch_gives_the_same_table(local_batch, batch_dir):
         ("sequences: [a]\n", "'output': required key is missing"),
         ("sequences: [a]\noutput: o\ngrid:\n  frontend.max_features: 200\n", "'grid.frontend.max_features'"),
         ("sequences: [a]\noutput: o\ntimeout_s: -3\n", "'timeout_s'"),
-        ("sequences:\n  - path: a\n    dataset: rosbag\noutput: o\n", "'sequences.0.dataset'"),
+        ("sequences:\n  - path: a\n    dataset: lidar\noutput: o\n", "'sequences.0.dataset'"),
         ("sequences: []\noutput: o\n", "'sequences'"),
         ("sequences: [a]\noutput: o\ngrid:\n  output: [x, y]\n", "cannot be varied"),
         ("sequences: [a]\noutput: o\ngrid:\n  frontend.max_feature: [1]\n", "'frontend.max_feature': unknown key"),
@@ -293,3 +293,24 @@ def test_call_task_resolves_main_module_objects(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "batchprobe"], capture_output=True, text=True, timeout=120,
                           cwd=tmp_path)
     assert proc.stdout.strip() == "ok 10.0", proc.stdout + proc.stderr
+
+
+def test_globs_match_folders_and_for_bags_and_videos_files(tmp_path):
+    rec = tmp_path / "rec"
+    (rec / "day1").mkdir(parents=True)
+    (rec / "day2").mkdir()
+    (rec / "notes.txt").write_text("not a sequence")
+    (rec / "a.mp4").write_bytes(b"")
+    (rec / "b.mp4").write_bytes(b"")
+    spec_path = tmp_path / "spec.yaml"
+    spec_path.write_text("sequences:\n  - rec/*\n  - {path: 'rec/*.mp4', dataset: video}\noutput: out\n"
+                         "grid:\n  frontend.max_features: [100, 300]\n")
+    plans = batch.plan_runs(batch.load_spec(spec_path), tmp_path)
+    assert [p.run_id for p in plans] == ["c00/day1", "c00/day2", "c00/a.mp4", "c00/b.mp4",
+                                         "c01/day1", "c01/day2", "c01/a.mp4", "c01/b.mp4"]
+    assert [p.resolved["dataset"] for p in plans[:4]] == ["native", "native", "video", "video"]
+    assert plans[2].resolved["sequence"] == str(rec / "a.mp4")
+    assert plans[4].run_dir == tmp_path / "out" / "runs" / "c01" / "day1"
+    # The hash sees the grid value and the sequence, not the output folder.
+    assert len({p.config_hash for p in plans}) == 8
+    assert batch.config_hash({**plans[0].resolved, "output": "/elsewhere"}) == plans[0].config_hash

@@ -4,7 +4,7 @@ A spec (YAML, paths relative to it) names the sequences, a base config, a grid o
 (runs are the Cartesian product), an output root and an optional per-run time-out::
 
     sequences:
-      - path: recordings/*           # a folder or a glob of folders
+      - path: recordings/*           # a folder or a glob (of folders; also files for rosbag/video)
         dataset: native
       - path: kitti/sequences/06
         dataset: kitti
@@ -53,6 +53,7 @@ RUN_MARKER = "batch_run.json"
 JOB_CONFIG = "job.yaml"
 RESERVED_GRID_KEYS = ("sequence", "output")
 _GLOB_CHARS = set("*?[")
+FILE_DATASETS = ("rosbag", "video")  # dataset kinds whose sequence may be a file (a glob matches files too)
 
 
 # ---------------------------------------------------------------------------- the spec
@@ -65,7 +66,7 @@ class _SpecModel(BaseModel):
 class SequenceEntry(_SpecModel):
     path: str = Field(min_length=1)
     dataset: DatasetKind = DatasetKind.NATIVE
-    name: str | None = Field(None, min_length=1)
+    name: str | None = Field(None, min_length=1)  # default: the folder (or file) name
     overrides: dict[str, Any] = {}  # config keys for this sequence only (nested or dotted)
 
 
@@ -195,9 +196,11 @@ def _resolve_sequences(spec: BatchSpec, spec_dir: Path) -> list[ResolvedSequence
         raw = Path(entry.path).expanduser()
         pattern = raw if raw.is_absolute() else spec_dir / raw
         if _GLOB_CHARS & set(entry.path):
-            matches = [Path(m) for m in sorted(glob.glob(str(pattern))) if Path(m).is_dir()]
+            files_ok = entry.dataset.value in FILE_DATASETS
+            matches = [Path(m) for m in sorted(glob.glob(str(pattern))) if Path(m).is_dir() or files_ok]
             if not matches:
-                raise ConfigError(f"batch spec: sequences[{i}]: '{entry.path}' matches no folder")
+                raise ConfigError(f"batch spec: sequences[{i}]: '{entry.path}' matches no "
+                                  f"{'file or folder' if files_ok else 'folder'}")
             if entry.name is not None and len(matches) > 1:
                 raise ConfigError(f"batch spec: sequences[{i}]: 'name' needs a single folder, "
                                   f"'{entry.path}' matches {len(matches)}")
