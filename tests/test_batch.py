@@ -314,3 +314,22 @@ def test_globs_match_folders_and_for_bags_and_videos_files(tmp_path):
     # The hash sees the grid value and the sequence, not the output folder.
     assert len({p.config_hash for p in plans}) == 8
     assert batch.config_hash({**plans[0].resolved, "output": "/elsewhere"}) == plans[0].config_hash
+
+
+def test_online_accuracy_is_reported_when_the_summary_has_it(tmp_path):
+    plan = batch.RunPlan("c00/s", "c00", "s", batch.DatasetKind.NATIVE, {"frontend.max_features": 150}, {}, "h",
+                         tmp_path)
+    base = {"frames": 100, "keyframes": 20, "fps": 50.0, "monocular": False,
+            "accuracy": {"ate_se3_rmse_m": 0.05, "ate_sim3_rmse_m": 0.02}}
+    without = batch.row_from_summary(plan, base, 3.0, reused=False)
+    with_online = batch.row_from_summary(plan, {**base, "accuracy_online": {"ate_se3_rmse_m": 0.08}}, 3.0, False)
+    monocular = batch.row_from_summary(plan, {**base, "monocular": True,
+                                              "accuracy": {"ate_se3_rmse_m": None, "ate_sim3_rmse_m": 0.03}}, 3.0,
+                                       False)
+    assert without.ate_online_se3_m is None and with_online.ate_online_se3_m == 0.08
+    assert (with_online.ate_se3_m, with_online.ate_sim3_m, with_online.keyframes) == (0.05, 0.02, 20)
+    assert monocular.ate_se3_m is None and monocular.ate_sim3_m == 0.03
+    batch.write_results_csv(tmp_path / "r.csv", [without, with_online, monocular], ["frontend.max_features"])
+    rows = batch.read_results_csv(tmp_path / "r.csv")
+    assert [r["ate_online_se3_m"] for r in rows] == ["", "0.08", ""]
+    assert [r["ate_se3_m"] for r in rows] == ["0.05", "0.05", ""]
