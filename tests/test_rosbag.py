@@ -15,7 +15,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from bagwriter import EPOCH, T_LINK_OPTICAL, BagSpec, typestore, write_bag
 from conftest import make_config
 
 from windowvo.app import run_job
@@ -32,6 +31,7 @@ from windowvo.io.rosbag import (
     static_chain,
 )
 from windowvo.io.sequence import load_native
+from windowvo.synth.bagwriter import EPOCH, T_LINK_OPTICAL, BagSpec, typestore, write_bag
 from windowvo.synth.paths import PathKind
 
 RADTAN = (-0.18, 0.04, 0.0008, -0.0006, 0.0)  # rendered into the images, written as plumb_bob

@@ -12,6 +12,8 @@ Suites:
   20-keyframe window, and resident memory after 500 and after N keyframes.
 * ``rerun``: run time with the Rerun recording on and off.
 * ``memory``: peak RSS of a whole run over 500 frames and over 5,000 frames (rendered once).
+* ``bag``: peak RSS of a run on a ROS bag (mcap) of a rendered loop and on a bag 10 times as
+  large (frames are streamed from the bag, so memory should stay flat).
 
 Each sequence runs in its own process (``--jobs N`` runs N at once) so peak RSS is per run.
 Numbers are what this machine measured; nothing is enforced here.
@@ -277,10 +279,56 @@ def bench_rerun(cache: Path, out_root: Path) -> dict:
     return res
 
 
+def _run_bag_peak_rss(bag: str, out: str) -> dict:
+    import logging
+
+    logging.basicConfig(level=logging.ERROR)
+    from .app import run_job
+    from .config import config_from_dict
+
+    cfg = config_from_dict({"sequence": bag, "dataset": "rosbag", "output": out, "progress": False,
+                            "viz": {"rerun": "off"}})
+    rep = run_job(cfg)
+    return {"frames": rep.result.n_frames, "keyframes": rep.result.n_keyframes, "fps": rep.result.fps,
+            "peak_rss_mb": _peak_rss_mb()}
+
+
+def bench_bag(cache: Path, out_root: Path, factor: int = 10, storage: str = "mcap") -> dict:
+    """Peak RSS of a run on a ROS bag of a rendered loop and on a bag ``factor`` times as large.
+
+    The large bag drives the same loop forward, back, forward, ... (images, wheel odometry and
+    ground truth follow the same time map). Frames are streamed from the bag, so peak memory
+    should not grow with its size. Each run is its own process; the bags are written once.
+    """
+    import multiprocessing
+
+    from .synth.bagwriter import BagSpec, write_bag
+    from .synth.generate import SynthSpec, generate_sequence
+    from .synth.paths import PathKind
+
+    d = cache / "bag_loop"
+    if not (d / "synth.json").is_file():
+        generate_sequence(d, SynthSpec(path=PathKind.LOOP, duration_s=15.0, seed=45))
+    res: dict = {}
+    for name, repeat in (("small", 1), (f"x{factor}", factor)):
+        bag = cache / f"bag_loop_{storage}_{repeat}" / ("bag.bag" if storage == "ros1" else "bag")
+        if not bag.exists():
+            bag.parent.mkdir(parents=True, exist_ok=True)
+            write_bag(d, bag, BagSpec(storage=storage, groundtruth="pose", repeat=repeat))
+        files = [bag] if bag.is_file() else [p for p in bag.iterdir() if p.is_file()]
+        # A fresh interpreter (spawn): a forked worker would start with this process's pages.
+        with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as ex:
+            row = ex.submit(_run_bag_peak_rss, str(bag), str(out_root / f"bag_{name}")).result()
+        row["bag_mb"] = sum(p.stat().st_size for p in files) / 2**20
+        res[name] = row
+    res["growth_pct"] = 100.0 * (res[f"x{factor}"]["peak_rss_mb"] / res["small"]["peak_rss_mb"] - 1.0)
+    return res
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m windowvo.bench", description=__doc__.splitlines()[0].strip("`"),
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun", "memory"])
+    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun", "memory", "bag"])
     p.add_argument("--out", default="windowvo_output/bench", help="outputs, JSON and plots")
     p.add_argument("--cache", default="windowvo_output/bench_cache", help="rendered sequences (reused)")
     p.add_argument("--duration", type=float, default=30.0, help="seconds of each synthetic sequence")
@@ -336,6 +384,16 @@ def main(argv=None) -> int:
             if isinstance(v, dict):
                 print(f"| {v['frames']} | {v['keyframes']} | {v['fps']:.1f} | {v['peak_rss_mb']:.0f} |")
         print(f"\ngrowth from 500 frames to the long run: {mem['growth_pct']:.1f}%\n")
+    if "bag" in a.suite:
+        bag_res = bench_bag(cache, out)
+        results["bag"] = bag_res
+        print("## ROS bag input (frames streamed)\n\n| bag | MB | frames | keyframes | fps | peak RSS MB |\n"
+              "|---|---|---|---|---|---|")
+        for k, v in bag_res.items():
+            if isinstance(v, dict):
+                print(f"| {k} | {v['bag_mb']:.0f} | {v['frames']} | {v['keyframes']} | {v['fps']:.1f} | "
+                      f"{v['peak_rss_mb']:.0f} |")
+        print(f"\npeak RSS growth from the small bag to the large one: {bag_res['growth_pct']:.1f}%\n")
     (out / "bench.json").write_text(json.dumps(results, indent=2, default=float))
     print(f"results: {out / 'bench.json'}")
     return 0

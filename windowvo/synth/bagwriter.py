@@ -1,4 +1,4 @@
-"""Test helper: write a native sequence folder as a ROS 1 or ROS 2 bag with ``rosbags``.
+"""Write a native sequence folder as a ROS 1 or ROS 2 bag with ``rosbags`` (tests, bag benchmark).
 
 The bag carries what a robot would record: camera images (raw or compressed), camera_info,
 wheel odometry on its own clock (50 Hz, offset from the camera), ``/tf_static`` with the
@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -23,7 +24,7 @@ from windowvo.io.sequence import list_images, read_camera_yaml
 from windowvo.io.trajectory import read_tum
 
 EPOCH = 1_700_000_000.0  # the bag's clock: native time 0 is this many seconds since 1970
-T_LINK_OPTICAL = make_T(R_BASE_CAM_FORWARD, [0.0, 0.0, 0.0])  # ROS camera_link -> optical frame
+T_LINK_OPTICAL = make_T(R_BASE_CAM_FORWARD, np.zeros(3))  # ROS camera_link -> optical frame
 
 
 @dataclass
@@ -46,6 +47,7 @@ class BagSpec:
     record_latency_s: float = 0.004  # record time = header stamp + this
     zero_header_stamps: bool = False
     max_frames: int | None = None
+    repeat: int = 1  # >1: drive the sequence forward, back, forward, ... (a bag `repeat` times as long)
 
 
 def typestore(storage: str):
@@ -111,6 +113,7 @@ def _image_msg(ts, t: float, frame: str, img: np.ndarray, kind: str):
         assert ok
         return g["sensor_msgs/msg/CompressedImage"](header=hdr, format=kind, data=np.frombuffer(buf, np.uint8).copy())
     h, w = img.shape
+    data: np.ndarray
     if kind == "mono16":
         data16 = img.astype(np.uint16) * 257
         data = data16.astype("<u2").view(np.uint8).ravel()
@@ -164,6 +167,26 @@ def write_bag(native: Path, out: Path, spec: BagSpec) -> Path:
         images, times = images[: spec.max_frames], times[: spec.max_frames]
     odo = read_odometry_csv(native / "odometry.csv")
     gt = read_tum(native / "groundtruth.txt") if (native / "groundtruth.txt").is_file() else None
+    gt_times, gt_poses = (gt.timestamps, gt.T_world_base) if gt is not None else (np.zeros(0), np.zeros((0, 4, 4)))
+    bag_times: np.ndarray | None = None  # with repeat: bag time of each frame ...
+    src_times: np.ndarray | None = None  # ... and the native time it shows
+
+    def native_time(u: float) -> float:
+        return u if bag_times is None or src_times is None else float(np.interp(u, bag_times, src_times))
+
+    if spec.repeat > 1:
+        # Ping-pong: forward, then the same path reversed (the robot backs up), and so on. Images,
+        # odometry and ground truth all follow the same bag-time -> native-time map, so they agree.
+        n = len(images)
+        order: list[int] = []
+        for k in range(spec.repeat):
+            order += list(range(n)) if k % 2 == 0 else list(range(n - 2, 0, -1))
+        dt = float(np.median(np.diff(times)))
+        bag_times = times[0] + dt * np.arange(len(order))
+        src_times = times[order]
+        if gt is not None and len(gt_times) == len(list_images(native / "images")):
+            gt_times, gt_poses = bag_times, gt.T_world_base[order]
+        images, times = [images[i] for i in order], bag_times
 
     events: list[tuple[float, str, str, object]] = []  # (record time, topic, msgtype, message)
 
@@ -200,7 +223,7 @@ def write_bag(native: Path, out: Path, spec: BagSpec) -> Path:
         k0 = int(np.floor((times[0] - spec.odometry_offset_s) / dt))
         t_odo = spec.odometry_offset_s + dt * np.arange(k0, k0 + int((times[-1] - times[0]) / dt) + 3)
         for t in t_odo:
-            T = _odometry_pose(odo, float(t))
+            T = _odometry_pose(odo, float(native_time(t)))
             if spec.odometry == "msg":
                 add(EPOCH + t + lat, spec.odometry_topic, "nav_msgs/msg/Odometry",
                     _odometry_msg(ts, EPOCH + t, "odom", "base_link", T))
@@ -208,7 +231,7 @@ def write_bag(native: Path, out: Path, spec: BagSpec) -> Path:
                 add(EPOCH + t + lat, "/tf", "tf2_msgs/msg/TFMessage",
                     ts.types["tf2_msgs/msg/TFMessage"](transforms=[_transform(ts, EPOCH + t, "odom", "base_link", T)]))
     if spec.groundtruth is not None and gt is not None:
-        for t, T in zip(gt.timestamps, gt.T_world_base):
+        for t, T in zip(gt_times, gt_poses):
             if t > times[-1] + 1e-9:
                 break
             if spec.groundtruth == "pose":
@@ -228,7 +251,7 @@ def write_bag(native: Path, out: Path, spec: BagSpec) -> Path:
     else:
         plugin = StoragePlugin.SQLITE3 if spec.storage == "sqlite3" else StoragePlugin.MCAP
         writer = Writer2(out, version=9, storage_plugin=plugin)
-    conns: dict[str, object] = {}
+    conns: dict[str, Any] = {}
     with writer:
         for t_rec, topic, msgtype, msg in events:
             if topic not in conns:
