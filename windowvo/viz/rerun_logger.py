@@ -24,6 +24,9 @@ so the data logged per frame stays flat however long the run.
 from __future__ import annotations
 
 import logging
+import queue
+import threading
+import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -113,11 +116,17 @@ CAM_PATH = "world/estimate/base/cam"
 SCALAR_FLUSH_FRAMES = 10  # scalars and path tips are sent every this many frames (and at the end)
 REVEAL_BLOCK = 50  # points per frozen block of a path revealed with time
 EPOCH_THRESHOLD_S = 1e8  # timestamps above this are taken as Unix time (shown as dates)
+QUEUE_FRAMES = 32  # frames the logging thread may lag behind the run before log_frame waits
 
 
 def _yes(flag: bool) -> str:
     # Recording properties hold booleans as words: rerun's AnyValues re-types a bool logged twice.
     return "yes" if flag else "no"
+
+
+def ui(points: float) -> float:
+    """A radius in screen points rather than metres (Rerun reads negative radii so)."""
+    return -abs(float(points))
 
 
 def _hex(c: RGB) -> str:
@@ -151,12 +160,16 @@ def legend_markdown() -> str:
     return "\n".join(lines)
 
 
-def _frame_extent(seq: Sequence) -> np.ndarray | None:
-    """(x, y) corners of the area the run will cover, from ground truth or wheel odometry."""
+def _frame_extent(seq: Sequence, max_frames: int | None = None) -> np.ndarray | None:
+    """(x, y) corners of the area the run will cover (its frames only), from ground truth or wheel odometry."""
+    ts = np.asarray(seq.timestamps, float)[:max_frames]
+    if not len(ts):
+        return None
     if seq.groundtruth is not None and len(seq.groundtruth):
-        p = seq.groundtruth.anchored().positions
-    elif seq.odometry is not None and len(seq.timestamps):
-        ts = seq.timestamps
+        gt = seq.groundtruth.anchored()
+        inside = (gt.timestamps >= ts[0] - 1e-6) & (gt.timestamps <= ts[-1] + 1e-6)
+        p = gt.positions[inside] if np.count_nonzero(inside) >= 2 else gt.positions
+    elif seq.odometry is not None:
         t0 = float(ts[0])
         p = np.stack([seq.odometry.delta(t0, float(t))[:3, 3] for t in ts[:: max(1, len(ts) // 200)]])
     else:
@@ -170,7 +183,7 @@ def top_down_eye(extent: np.ndarray | None) -> rrb.EyeControls3D | None:
         return None
     centre = extent.mean(axis=0)
     size = float(max(np.max(extent[1] - extent[0]), 2.0))
-    height = 1.6 * size
+    height = 2.0 * size
     return rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=(centre[0] - 1e-3 * size, centre[1], height),
                              look_target=(centre[0], centre[1], 0.0), eye_up=(0.0, 0.0, 1.0))
 
@@ -201,7 +214,7 @@ def blueprint(seq: Sequence | None = None, cfg: Config | None = None,
         axis = rrb.ScalarAxis(range=ranges[unit], zoom_lock=False) if unit in ranges else None
         plots.append(rrb.TimeSeriesView(name=title, origin=f"plots/{unit}", axis_y=axis,
                                         plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=True)))
-    eye = top_down_eye(_frame_extent(seq)) if seq is not None else None
+    eye = top_down_eye(_frame_extent(seq, cfg.max_frames if cfg is not None else None)) if seq is not None else None
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
@@ -281,6 +294,7 @@ class RevealedPath:
 
 class RerunLogger:
     def __init__(self, cfg: Config, seq: Sequence, recording_path=None):
+        t_start = time.perf_counter()
         self.cfg = cfg
         self.seq = seq
         self.rec = rr.RecordingStream("windowvo", make_default=False)
@@ -318,10 +332,11 @@ class RerunLogger:
                                                      colors=[GATE_RGB[g] for g in GATE_RGB]), static=True)
         rec.log("states/backend", rr.StateConfiguration(values=[s.value for s in STATUS_RGB],
                                                         colors=[STATUS_RGB[s] for s in STATUS_RGB]), static=True)
-        self.online = RevealedPath("world/estimate/online", ESTIMATE_RGB, 0.02)
-        self.keyframes = RevealedPath("world/estimate/keyframes", KEYFRAME_RGB, 0.04, as_points=True)
-        self.groundtruth = RevealedPath("world/groundtruth", GROUNDTRUTH_RGB, 0.015)
-        self.wheels = RevealedPath("world/wheel_odometry", WHEELS_RGB, 0.015)
+        # Sizes in screen points (negative radii), so paths read the same on a 5 m room and a 5 km drive.
+        self.online = RevealedPath("world/estimate/online", ESTIMATE_RGB, ui(1.5))
+        self.keyframes = RevealedPath("world/estimate/keyframes", KEYFRAME_RGB, ui(3.0), as_points=True)
+        self.groundtruth = RevealedPath("world/groundtruth", GROUNDTRUTH_RGB, ui(1.5))
+        self.wheels = RevealedPath("world/wheel_odometry", WHEELS_RGB, ui(1.5))
         self._paths = [self.online, self.keyframes, self.groundtruth, self.wheels]
         self._gt = seq.groundtruth.anchored() if seq.groundtruth is not None and len(seq.groundtruth) else None
         self._gt_next = 0  # next ground-truth sample to reveal
@@ -333,6 +348,37 @@ class RerunLogger:
         self.n_logged_frames = 0
         # Pixels of the tracks over the last few frames, for the tails: (ids, pixels) per frame.
         self._tail_history: list[tuple[np.ndarray, np.ndarray]] = []
+        # Encoding and logging happen in a thread of their own; the run's thread only queues frames.
+        self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_FRAMES)
+        self._failed = False
+        self.worker_s = 0.0  # time spent in the logging thread
+        self._worker = threading.Thread(target=self._work, name="windowvo-rerun", daemon=True)
+        self._worker.start()
+        # Time the run's thread spent in this logger (set-up, queueing, end), reported as a property.
+        self.busy_s = time.perf_counter() - t_start
+
+    def _work(self) -> None:
+        while True:
+            item = self._queue.get()
+            try:
+                if item is None:
+                    return
+                fn, args = item
+                t_start = time.perf_counter()
+                if not self._failed:
+                    fn(*args)
+                self.worker_s += time.perf_counter() - t_start
+            except Exception:  # the viewer must never stop the run
+                log.exception("Rerun logging failed; the rest of the run is not recorded")
+                self._failed = True
+            finally:
+                self._queue.task_done()
+
+    def _submit(self, fn, *args) -> None:
+        t_start = time.perf_counter()
+        if self._worker.is_alive():
+            self._queue.put((fn, args))
+        self.busy_s += time.perf_counter() - t_start
 
     # ------------------------------------------------------------------ recording properties
     def _send_properties(self) -> None:
@@ -379,7 +425,10 @@ class RerunLogger:
 
     def log_frame(self, frame: Frame | None, est: FrameEstimate) -> None:
         """Log one frame. ``frame`` may be None for a skipped frame (``est.skipped``): its pose and note
-        are logged, nothing from the camera."""
+        are logged, nothing from the camera. Returns at once: a thread of its own does the work."""
+        self._submit(self._log_frame, frame, est)
+
+    def _log_frame(self, frame: Frame | None, est: FrameEstimate) -> None:
         idx, t = est.frame_index, float(est.timestamp)
         rec = self.rec
         self._set_time(idx, t)
@@ -397,9 +446,9 @@ class RerunLogger:
             self.keyframes.add(bo.T_world_base[:3, 3])
             order = sorted(bo.keyframe_poses)
             win = np.asarray([bo.keyframe_poses[k][:3, 3] for k in order]).reshape(-1, 3)
-            rec.log("world/window", rr.Points3D(win, colors=[WINDOW_RGB], radii=0.06))
+            rec.log("world/window", rr.Points3D(win, colors=[WINDOW_RGB], radii=ui(4.0)))
             rec.log("world/landmarks", rr.Points3D(bo.p_world_landmarks.reshape(-1, 3), colors=[LANDMARK_RGB],
-                                                   radii=0.03))
+                                                   radii=ui(1.5)))
             self._scalar("plots/counts/landmarks", idx, t, bo.n_landmarks)
             self._scalar("plots/px/reprojection_rms", idx, t, bo.reprojection_rms_px)
             self._scalar("plots/ms/backend", idx, t, bo.backend_ms)
@@ -415,6 +464,9 @@ class RerunLogger:
     def log_message(self, text: str, level: str = "WARN", frame_index: int | None = None,
                     timestamp: float | None = None) -> None:
         """A line in the text log (e.g. a skipped frame or an odometry gap the pipeline noticed)."""
+        self._submit(self._log_message, text, level, frame_index, timestamp)
+
+    def _log_message(self, text: str, level: str, frame_index: int | None, timestamp: float | None) -> None:
         if frame_index is not None and timestamp is not None:
             self._set_time(frame_index, float(timestamp))
         self.rec.log("log", rr.TextLog(text, level=level))
@@ -502,11 +554,22 @@ class RerunLogger:
     def finish(self, result: RunResult, report=None) -> None:
         """Log the final smoothed trajectory (one pose per frame, as trajectory.txt) at the last frame's
         time, the run's numbers and the accuracy as recording properties, and close the recording."""
+        t_start = time.perf_counter()
+        self._submit(self._finish, result, report, t_start)
+        if self._worker.is_alive():
+            self._queue.put(None)
+            self._worker.join()
+        self.busy_s += time.perf_counter() - t_start
+        self.rec.flush()
+        if self.path is not None:
+            self.rec.disconnect()
+
+    def _finish(self, result: RunResult, report, t_start: float) -> None:
         self.flush()
         traj = result.trajectory
         if len(traj) and result.last_frame_index >= 0:
             self._set_time(result.last_frame_index, float(traj.timestamps[-1]))
-            self.rec.log("world/final", rr.LineStrips3D([traj.positions], colors=[FINAL_RGB], radii=0.025))
+            self.rec.log("world/final", rr.LineStrips3D([traj.positions], colors=[FINAL_RGB], radii=ui(1.0)))
         # The layout again, now with y ranges that leave the legends room above the data.
         maxima = {unit: float(np.percentile(v, 99)) for unit, v in self._unit_values.items()
                   if unit in ("ms", "px") and v}
@@ -514,7 +577,8 @@ class RerunLogger:
         self.rec.send_property("run", rr.AnyValues(
             frames=result.n_frames, keyframes=result.n_keyframes, skipped_frames=result.n_skipped,
             wall_s=float(result.wall_s), fps=float(result.fps), backend_resets=result.n_resets,
-            monocular=_yes(result.monocular), interrupted=_yes(result.interrupted)))
+            monocular=_yes(result.monocular), interrupted=_yes(result.interrupted),
+            viewer_busy_s=float(self.busy_s + time.perf_counter() - t_start), viewer_thread_s=float(self.worker_s)))
         acc = getattr(report, "accuracy", None) if report is not None else None
         if acc is not None:
             # Numbers only (None = not available, e.g. the ATE SE(3) of a monocular run).
@@ -523,6 +587,3 @@ class RerunLogger:
             values["summary"] = acc.summary()
             self.rec.send_property("accuracy", rr.AnyValues(**values))
             self.rec.log("log", rr.TextLog("accuracy: " + acc.summary(), level=rr.TextLogLevel.INFO))
-        self.rec.flush()
-        if self.path is not None:
-            self.rec.disconnect()

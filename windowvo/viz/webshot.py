@@ -180,17 +180,19 @@ def _shoot_inside(rrd: Path, out_dir: Path, themes: list[str], size: tuple[int, 
                           f"--window-size={w},{h}", f"--user-data-dir={out_dir / '.chromium-profile'}"])
     out: list[Path] = []
     try:
-        for theme in themes:
-            target = cdp.call("Target.createTarget", {"url": "about:blank"})["targetId"]
-            session = cdp.call("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
-            cdp.call("Emulation.setDeviceMetricsOverride",
-                     {"width": w, "height": h, "deviceScaleFactor": 1, "mobile": False}, session)
+        # One page: load the recording once, then switch the colour scheme between captures.
+        target = cdp.call("Target.createTarget", {"url": "about:blank"})["targetId"]
+        session = cdp.call("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+        cdp.call("Emulation.setDeviceMetricsOverride",
+                 {"width": w, "height": h, "deviceScaleFactor": 1, "mobile": False}, session)
+        cdp.call("Page.enable", session=session)
+        for i, theme in enumerate(themes):
             cdp.call("Emulation.setEmulatedMedia",
                      {"features": [{"name": "prefers-color-scheme", "value": theme}]}, session)
-            cdp.call("Page.enable", session=session)
-            cdp.call("Page.navigate", {"url": url}, session)
             t0 = time.monotonic()
-            time.sleep(min_wait_s)
+            if i == 0:
+                cdp.call("Page.navigate", {"url": url}, session)
+            time.sleep(min_wait_s if i == 0 else 2.0)
             previous: np.ndarray | None = None
             png = b""
             while True:
@@ -210,7 +212,6 @@ def _shoot_inside(rrd: Path, out_dir: Path, themes: list[str], size: tuple[int, 
             path.write_bytes(png)
             print(f"{path} after {time.monotonic() - t0:.1f} s", flush=True)
             out.append(path)
-            cdp.call("Target.closeTarget", {"targetId": target})
     finally:
         cdp.close()
         files.shutdown()
