@@ -4,7 +4,8 @@ import gtsam
 import numpy as np
 import pytest
 
-from windowvo.backend.smoother import OdometryStep, SlidingWindowBackend, X
+from windowvo.backend import factors as fac
+from windowvo.backend.smoother import SlidingWindowBackend, X
 from windowvo.camera import CameraModel
 from windowvo.config import BackendConfig
 from windowvo.eval.metrics import evaluate
@@ -13,6 +14,7 @@ from windowvo.io.trajectory import Trajectory
 from windowvo.synth.features import simulate_features
 from windowvo.synth.generate import SynthSpec, WheelErrorModel, build_world, simulate_wheel_odometry
 from windowvo.synth.paths import PathKind
+from windowvo.types import OdometryStep
 
 
 def run_backend(fs, cfg: BackendConfig, vision: bool = True, backend_cls=None):
@@ -73,11 +75,9 @@ def test_odometry_between_factor_matches_ground_truth():
 
 
 def test_planar_prior_levels_a_tilted_pose_and_keeps_yaw():
-    cam = CameraModel(640, 480, 300, 300, 320, 240)
-    be = SlidingWindowBackend(cam, BackendConfig(), use_odometry=True)
     graph = gtsam.NonlinearFactorGraph()
     T_tilted = make_T(rpy_to_R(0.15, -0.1, 0.7), [1.0, 2.0, 0.0])
-    be._planar_factors(graph, 1, T_tilted)
+    graph.add(fac.planar_attitude_factor(X(1), BackendConfig()))
     # a prior that holds position and yaw only (roll and pitch free)
     sig = np.array([10.0, 10.0, 1e-3, 1e-3, 1e-3, 1e-3])
     graph.add(gtsam.PriorFactorPose3(X(1), gtsam.Pose3(T_tilted), gtsam.noiseModel.Diagonal.Sigmas(sig)))

@@ -47,7 +47,9 @@ def test_kitti_fixture(tmp_path):
     (root / "poses.txt").write_text("".join(" ".join(f"{x:.9e}" for x in T[:3].ravel()) + "\n" for T in poses))
     seq = datasets.load_kitti(root)
     assert (seq.camera.fx, seq.camera.fy, seq.camera.cx, seq.camera.cy) == (700, 705, 30, 20)
-    assert abs(seq.stereo_baseline_m - 0.54) < 1e-9
+    assert abs(datasets.read_kitti_calib(root / "calib.txt")[1] - 0.54) < 1e-9
+    # the base lies on the road 1.65 m below camera 0
+    assert np.allclose(seq.camera.T_base_cam[:3, 3], [0.0, 0.0, 1.65])
     # camera moving along its z axis is the base moving along x (forward)
     gt = seq.groundtruth.T_world_base
     assert np.allclose(gt[0], np.eye(4))

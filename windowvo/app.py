@@ -16,6 +16,7 @@ import numpy as np
 
 from .config import Config, RerunMode
 from .errors import WindowVOError
+from .eval.metrics import AccuracyReport
 from .io.sequence import Sequence
 from .io.trajectory import Trajectory
 from .pipeline import Pipeline, RunResult, write_outputs
@@ -27,8 +28,9 @@ log = logging.getLogger("windowvo")
 class JobReport:
     result: RunResult
     sequence: Sequence
-    accuracy: object | None = None  # AccuracyReport
-    wheel_accuracy: object | None = None
+    accuracy: AccuracyReport | None = None  # the smoothed trajectory
+    wheel_accuracy: AccuracyReport | None = None
+    online_accuracy: AccuracyReport | None = None  # the causal trajectory
 
 
 def load_sequence(cfg: Config) -> Sequence:
@@ -60,11 +62,17 @@ def run_job(cfg: Config, progress=None) -> JobReport:
         log.warning("%s", w)
     viewer = make_viewer(cfg, seq)
     pipe = Pipeline(cfg, seq, viewer=viewer, progress=progress)
+    be = pipe.backend
+    ground = (f"the floor at the camera height ({be.camera_height_m:.3f} m above it)" if be.use_ground
+              else "no ground cue")
     if pipe.use_odometry:
-        label = " (synthetic wheel odometry)" if seq.odometry is not None and seq.odometry.synthetic else ""
-        log.info("metric run: wheel odometry fixes the scale%s", label)
+        label = " (synthetic)" if seq.odometry is not None and seq.odometry.synthetic else ""
+        calib = ", calibrated online" if be.calibrate else ""
+        log.info("scale sources: wheel odometry%s%s; %s", label, calib, ground)
+    elif be.use_ground:
+        log.info("no wheel odometry: monocular run made metric by %s", ground)
     else:
-        log.warning("no wheel odometry: monocular run, the trajectory is up to scale")
+        log.warning("no wheel odometry and no ground cue: monocular run, the trajectory is up to scale")
     result = None
     try:
         result = pipe.run()
@@ -90,7 +98,10 @@ def run_job(cfg: Config, progress=None) -> JobReport:
         from .eval.metrics import evaluate
 
         try:
-            report.accuracy = evaluate(seq.groundtruth, result.trajectory, monocular=result.monocular)
+            report.accuracy = evaluate(seq.groundtruth, result.trajectory, monocular=not result.metric)
+            if result.trajectory_online is not None and len(result.trajectory_online) >= 3:
+                report.online_accuracy = evaluate(seq.groundtruth, result.trajectory_online,
+                                                  monocular=not result.metric)
             wheel = wheel_only_trajectory(seq, result.trajectory.timestamps)
             if wheel is not None:
                 report.wheel_accuracy = evaluate(seq.groundtruth, wheel)
@@ -138,9 +149,16 @@ def run_and_report(cfg: Config) -> RunResult:
         "backend_ms_median": round(float(np.median(r.backend_ms)), 3) if r.backend_ms else None,
         "backend_resets": r.n_resets,
         "monocular": r.monocular,
+        "metric": r.metric,
+        "scale_sources": r.scale_sources,
+        "wheel_calibration": None if r.wheel_calibration is None else {
+            "scale": round(r.wheel_calibration.scale, 5), "scale_sigma": round(r.wheel_calibration.scale_sigma, 5),
+            "yaw_bias_per_m": round(r.wheel_calibration.yaw_bias_per_m, 6),
+            "yaw_bias_sigma": round(r.wheel_calibration.yaw_bias_sigma, 6)},
         "odometry_synthetic": bool(report.sequence.odometry is not None and report.sequence.odometry.synthetic),
         "interrupted": r.interrupted,
         "accuracy": report.accuracy.as_dict() if report.accuracy is not None else None,
+        "accuracy_online": report.online_accuracy.as_dict() if report.online_accuracy is not None else None,
         "wheel_only_accuracy": report.wheel_accuracy.as_dict() if report.wheel_accuracy is not None else None,
     }
     (cfg.output / "summary.json").write_text(json.dumps(summary, indent=2))
@@ -148,12 +166,19 @@ def run_and_report(cfg: Config) -> RunResult:
         f"windowvo: {r.n_frames} frames ({r.n_skipped} skipped), {r.n_keyframes} keyframes, "
         f"{r.wall_s:.1f} s, {r.fps:.1f} fps" + (" [interrupted]" if r.interrupted else ""),
     ]
-    if r.monocular:
-        lines.append("monocular run (no wheel odometry): the trajectory is up to scale")
-    elif summary["odometry_synthetic"]:
-        lines.append("scale from wheel odometry (synthetic, see odometry.csv header)")
+    if not r.metric:
+        lines.append("monocular run (no wheel odometry, no floor at the camera height): the trajectory is up to scale")
+    else:
+        synthetic = " (wheels synthetic, see odometry.csv header)" if summary["odometry_synthetic"] else ""
+        lines.append("metric scale from: " + ", ".join(r.scale_sources) + synthetic)
+    if r.wheel_calibration is not None:
+        c = r.wheel_calibration
+        lines.append(f"wheel calibration: scale {c.scale:.4f} ± {c.scale_sigma:.4f}, "
+                     f"yaw bias {c.yaw_bias_per_m * 1000:.2f} ± {c.yaw_bias_sigma * 1000:.2f} mrad/m")
     if report.accuracy is not None:
-        lines.append("accuracy: " + report.accuracy.summary(metric=not r.monocular))
+        lines.append("accuracy (smoothed): " + report.accuracy.summary(metric=r.metric))
+    if report.online_accuracy is not None:
+        lines.append("accuracy (causal, online): " + report.online_accuracy.summary(metric=r.metric))
     if report.wheel_accuracy is not None:
         lines.append(f"wheel odometry alone: ATE SE(3) {report.wheel_accuracy.ate_se3_rmse_m:.3f} m")
     lines.append(f"outputs: {cfg.output}")

@@ -115,7 +115,8 @@ class OdometryNoiseConfig(_Section):
                                                                 "keyframes")
     robust: RobustKind = Field(RobustKind.CAUCHY, description="robust loss of the wheel factors (huber, cauchy, none); "
                                                               "cauchy lets consistent vision overrule slipping wheels")
-    robust_k: float = Field(1.0, gt=0, description="threshold of the robust loss, in sigmas")
+    robust_k: float | None = Field(None, gt=0, description="threshold of the robust loss in sigmas of the 3-D planar "
+                                   "residual; default: from the chi-square quantile of backend.robust_confidence")
     max_gap_s: float = Field(0.5, gt=0, description="longest gap in the wheel odometry bridged; over it the step is "
                                                     "vision only")
 
@@ -129,6 +130,50 @@ class PlanarPriorConfig(_Section):
     height_sigma_m: float = Field(0.5, gt=0, description="sigma of the height prior")
 
 
+class GroundConfig(_Section):
+    """Ground-plane scale cue: floor landmarks tied to the floor at the camera's known height."""
+
+    enabled: bool = Field(True, description="tie floor landmarks to the ground plane (metric scale from the camera height)")
+    camera_height_m: float | None = Field(None, gt=0, description="camera height above the floor; default: the z of "
+                                          "T_base_cam (base origin on the floor)")
+    sigma_height_fraction: float = Field(0.03, gt=0, description="sigma of a floor point's height, as a share of the "
+                                         "camera height")
+    robust: RobustKind = Field(RobustKind.HUBER, description="robust loss of the ground factor")
+    robust_k: float | None = Field(None, gt=0, description="its threshold in sigmas; default: chi-square quantile, 1-D")
+    min_depression_deg: float = Field(8.0, ge=0, lt=90, description="floor candidates lie at least this far below "
+                                      "the horizon of the base frame, seen from the camera")
+    max_range_heights: float = Field(15.0, gt=0, description="floor candidates lie within this many camera heights")
+    max_tilt_deg: float = Field(6.0, gt=0, lt=45, description="the fitted floor plane may tilt this much from the "
+                                "base frame's xy plane (more: a ramp or slope ahead, cue off for that keyframe)")
+    height_tolerance: float = Field(0.25, gt=0, lt=1, description="the fitted plane must lie within this share of "
+                                    "the camera height (else the cue is off for that keyframe)")
+    inlier_height_fraction: float = Field(0.03, gt=0, description="RANSAC inlier distance: this share of the camera "
+                                          "height ...")
+    inlier_range_fraction: float = Field(0.005, ge=0, description="... plus this share of the point's range")
+    min_points: int = Field(8, ge=3, description="floor points needed to accept a plane")
+    max_landmarks: int = Field(80, ge=0, le=2000, description="floor landmarks in the window, on top of "
+                               "backend.max_landmarks (they carry the scale)")
+    seed: int = Field(0, description="seed of the plane RANSAC (runs are deterministic)")
+
+
+class WheelCalibrationConfig(_Section):
+    """Online wheel calibration: distance scale and yaw bias per metre as slowly varying states."""
+
+    enabled: bool = Field(True, description="estimate the wheels' scale and yaw bias in the window, from the first "
+                          "keyframe whose floor landmarks fix the metric scale")
+    scale_prior_sigma: float = Field(0.03, gt=0, description="prior sigma of the scale (around 1)")
+    yaw_bias_prior_sigma: float = Field(0.02, gt=0, description="prior sigma of the yaw bias (rad/m, around 0)")
+    scale_walk_per_sqrt_m: float = Field(1e-3, gt=0, description="random walk of the scale per sqrt(metre)")
+    yaw_bias_walk_per_sqrt_m: float = Field(2e-4, gt=0, description="random walk of the yaw bias per sqrt(metre)")
+
+
+class ResetPriorConfig(_Section):
+    """Prior that holds the last good pose when the window restarts after a smoother failure."""
+
+    rotation_sigma_rad: float = Field(0.01, gt=0, description="rotation sigma of the reset prior")
+    position_sigma_m: float = Field(0.02, gt=0, description="position sigma of the reset prior")
+
+
 class BackendConfig(_Section):
     window_keyframes: int = Field(20, ge=3, le=500, description="keyframes in the fixed-lag window")
     max_landmarks: int = Field(150, ge=10, le=5000, description="landmark budget of the window")
@@ -140,7 +185,10 @@ class BackendConfig(_Section):
     pixel_sigma: float = Field(1.0, gt=0, description="sigma of a projection (pixels)")
     robust: RobustKind = Field(RobustKind.HUBER, description="robust loss of the projection factors (huber, cauchy, "
                                                              "none)")
-    huber_k: float = Field(1.345, gt=0, description="threshold of the projection loss, in sigmas")
+    huber_k: float | None = Field(None, gt=0, description="threshold of the pixel loss in sigmas; default: from the "
+                                  "chi-square quantile (2-D) of robust_confidence")
+    robust_confidence: float = Field(0.95, gt=0.5, lt=1, description="share of inlier residuals inside the robust "
+                                     "threshold: thresholds come from the chi-square quantile of each factor's dimension")
     min_triangulation_angle_deg: float = Field(1.0, gt=0, lt=90, description="a track's rays must diverge this much "
                                                                              "before it is triangulated")
     max_reprojection_px: float = Field(3.0, gt=0, description="largest reprojection error of a newly triangulated "
@@ -156,6 +204,12 @@ class BackendConfig(_Section):
                                                                              "robust loss, gaps")
     planar_prior: PlanarPriorConfig = Field(PlanarPriorConfig(), description="roll/pitch (and height) prior for ground "
                                                                              "robots")
+    ground: GroundConfig = Field(GroundConfig(), description="ground-plane scale cue: floor landmarks at the "
+                                 "camera's known height make the scale metric, with or without wheels")
+    wheel_calibration: WheelCalibrationConfig = Field(WheelCalibrationConfig(), description="online wheel "
+                                                      "calibration (scale, yaw bias) as states in the window")
+    reset_prior: ResetPriorConfig = Field(ResetPriorConfig(), description="prior on the last good pose when "
+                                          "the window restarts after a failure")
 
 
 class VizConfig(_Section):

@@ -19,7 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .backend.smoother import OdometryStep, SlidingWindowBackend
+from .backend.smoother import SlidingWindowBackend, WheelCalibration
 from .config import Config, save_config
 from .errors import SequenceError
 from .frontend.frontend import Frontend
@@ -27,7 +27,7 @@ from .geometry import interpolate_T
 from .io.provider import DataProvider, SkippedFrame
 from .io.sequence import Sequence
 from .io.trajectory import Trajectory, write_tum
-from .types import BackendOutput, BackendStatus, FrameEstimate, FrameRecord, FrontendOutput
+from .types import BackendOutput, BackendStatus, FrameEstimate, FrameRecord, FrontendOutput, OdometryStep
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +47,10 @@ class RunResult:
     n_resets: int = 0
     notes: list[str] = field(default_factory=list)
     last_frame_index: int = -1
+    metric: bool = False  # the scale is metric (wheels, or the ground plane at the camera height)
+    scale_sources: list[str] = field(default_factory=list)
+    wheel_calibration: WheelCalibration | None = None  # final online estimate (with wheels)
+    trajectory_online: Trajectory | None = None  # causal pose per frame, as a robot had it at that time
 
     @property
     def fps(self) -> float:
@@ -156,6 +160,8 @@ class Pipeline:
             n_resets=self.backend.n_resets,
             notes=self.notes,
             last_frame_index=self.frames[-1][0] if self.frames else -1,
+            **self.scale_report(),
+            trajectory_online=self.online_trajectory(),
         )
 
     def _step(self, item, is_last: bool) -> None:
@@ -190,11 +196,11 @@ class Pipeline:
         # in the middle leaves frames and records in step).
         self.frames.append((frame.index, frame.timestamp))
         self.online.append(T_online)
-        self.records.append(self._record(fo, bo, note))
+        latency_ms = (time.perf_counter() - t_in) * 1000.0
+        self.records.append(self._record(fo, bo, note, latency_ms))
         if self.viewer is not None:
             est = FrameEstimate(frame.index, frame.timestamp, T_online, fo.is_keyframe, False,
-                                bo.status if bo is not None else None, (time.perf_counter() - t_in) * 1000.0,
-                                fo, bo, note)
+                                bo.status if bo is not None else None, latency_ms, fo, bo, note)
             self.viewer.log_frame(frame, est)
 
     def _online_pose(self, t: float) -> np.ndarray:
@@ -207,7 +213,7 @@ class Pipeline:
             return self.last_kf_online @ odo.delta(self.last_kf_time, t)
         return self.last_kf_online.copy()
 
-    def _record(self, fo: FrontendOutput, bo: BackendOutput | None, note: str) -> FrameRecord:
+    def _record(self, fo: FrontendOutput, bo: BackendOutput | None, note: str, latency_ms: float) -> FrameRecord:
         return FrameRecord(
             frame_index=fo.frame_index,
             timestamp=fo.timestamp,
@@ -228,6 +234,10 @@ class Pipeline:
             frontend_ms=round(fo.frontend_ms, 3),
             backend_ms=round(bo.backend_ms, 3) if bo is not None else 0.0,
             note=note,
+            n_ground_factors=bo.n_ground_factors if bo is not None else 0,
+            wheel_scale=round(bo.wheel_scale, 5) if bo is not None else float("nan"),
+            wheel_yaw_bias_per_m=round(bo.wheel_yaw_bias_per_m, 6) if bo is not None else float("nan"),
+            latency_ms=round(latency_ms, 3),
         )
 
     # ------------------------------------------------------------------ outputs
@@ -237,6 +247,21 @@ class Pipeline:
         except ValueError:
             return None
         return self.backend.kf_pose.get(k)
+
+    def scale_report(self) -> dict:
+        """Whether the run is metric, what fixed its scale, and the final wheel calibration."""
+        be = self.backend
+        return {
+            "metric": bool(be.metric),
+            "scale_sources": [s.value for s in be.scale_sources()],
+            "wheel_calibration": be.calibration_with_sigma() if be.calibrate and be.k >= 0 else None,
+        }
+
+    def online_trajectory(self) -> Trajectory:
+        """The causal pose of every processed or skipped frame (what the robot had at that frame's time)."""
+        if not self.frames:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        return Trajectory(np.asarray([t for _, t in self.frames]), np.stack(self.online))
 
     def assemble_trajectory(self) -> Trajectory:
         """One pose per frame: keyframes from the smoother, the others in between.
@@ -274,10 +299,17 @@ class Pipeline:
 
 def write_outputs(cfg: Config, result: RunResult, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    header = "windowvo estimate: T_world_base, world = base at the first frame (TUM: t tx ty tz qx qy qz qw)"
-    if result.monocular:
+    header = "T_world_base, world = base at the first frame (TUM: t tx ty tz qx qy qz qw)"
+    if not result.metric:
         header += "\nmonocular run: translation is up to scale"
-    write_tum(out / "trajectory.txt", result.trajectory.timestamps, result.trajectory.T_world_base, header=header)
+    elif result.scale_sources:
+        header += "\nmetric scale from: " + ", ".join(result.scale_sources)
+    write_tum(out / "trajectory.txt", result.trajectory.timestamps, result.trajectory.T_world_base,
+              header="windowvo estimate (fixed-lag smoothed): " + header)
+    if result.trajectory_online is not None and len(result.trajectory_online):
+        write_tum(out / "trajectory_online.txt", result.trajectory_online.timestamps,
+                  result.trajectory_online.T_world_base,
+                  header="windowvo causal estimate (each frame's pose as known at that frame's time): " + header)
     write_stats(out / "stats.csv", result.records)
     save_config(cfg, out / "config_resolved.yaml")
 

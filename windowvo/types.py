@@ -76,6 +76,23 @@ class FrontendOutput:
     pixel_sigma_scale: np.ndarray | None = None
 
 
+@dataclass
+class OdometryStep:
+    """Wheel odometry between the previous keyframe and this one."""
+
+    T_prev_cur: np.ndarray  # T_base(k-1)_base(k), as the wheels report it
+    distance_m: float
+    ok: bool = True  # False when odometry was missing or stale for this step
+
+
+class ScaleSource(str, enum.Enum):
+    """What fixes a run's metric scale."""
+
+    WHEELS = "wheels"
+    WHEELS_CALIBRATED = "wheels (online calibration)"
+    GROUND_PLANE = "ground plane (camera height)"
+
+
 class BackendStatus(str, enum.Enum):
     """How the back end handled a keyframe."""
 
@@ -101,6 +118,9 @@ class BackendOutput:
     reprojection_rms_px: float = float("nan")
     backend_ms: float = 0.0
     status: BackendStatus = BackendStatus.OK
+    n_ground_factors: int = 0  # floor landmarks tied to the ground plane at this keyframe
+    wheel_scale: float = float("nan")  # online wheel calibration after this keyframe (nan: not estimated)
+    wheel_yaw_bias_per_m: float = float("nan")
 
 
 @dataclass
@@ -147,3 +167,7 @@ class FrameRecord:
     frontend_ms: float
     backend_ms: float
     note: str = ""
+    n_ground_factors: int = 0
+    wheel_scale: float = float("nan")
+    wheel_yaw_bias_per_m: float = float("nan")
+    latency_ms: float = 0.0

@@ -1,95 +1,77 @@
-"""Back end: a GTSAM fixed-lag smoother over keyframe poses and landmarks.
+"""The back end's window: keys, timestamps, iSAM2 (GTSAM's fixed-lag smoother), reset.
 
-States: ``X(k)`` is ``T_world_base`` of keyframe k (a ``Pose3``), ``L(id)`` the world position
-of the landmark of track ``id`` (a ``Point3``). The camera enters the projection factors
-through ``T_base_cam`` (GTSAM's ``body_P_sensor``).
+``SlidingWindowBackend.add_keyframe`` takes one keyframe's tracks and wheel step, asks the
+factor builders (``factors.py``) for factors, the landmark manager (``landmarks.py``) for
+landmarks, the ground cue (``ground.py``) for floor landmarks, and submits one update.
 
-Key lifecycle (designed so that GTSAM's fixed-lag smoother never meets a key it cannot
-handle, see GTSAM issues #1638/#1795/#2478):
+States: ``X(k)`` is ``T_world_base`` of keyframe k, ``L(id)`` the world position of the landmark
+of track ``id``, ``C(k)`` the wheel calibration (distance scale, yaw bias per metre) at keyframe k.
+The camera enters the projection factors through ``T_base_cam`` (GTSAM's ``body_P_sensor``).
+
+Key lifecycle (designed so that GTSAM's fixed-lag smoother never meets a key it cannot handle,
+see GTSAM issues #1638/#1795/#2478/#2741/#1976):
 
 * the smoother's clock is the keyframe counter; the lag is ``window_keyframes - 1``;
-* every new pose arrives with its timestamp and at least one factor (odometry between-factor,
-  or a weak motion prior in monocular mode); every new landmark with its timestamp and at
-  least two projection factors, all on poses still inside the window;
+* every new pose arrives with its timestamp and at least one factor (odometry, or a weak motion
+  prior in monocular mode); every new landmark with its timestamp and at least two projection
+  factors, all on poses still inside the window; every new calibration state ``C(k)`` with its
+  timestamp and a random-walk factor from ``C(k-1)`` (so the chain never breaks, with or without
+  a wheel reading at this step), and the wheel factor that uses it;
 * a landmark's timestamp is refreshed whenever a new keyframe observes it, so it is
-  marginalised together with the last pose that saw it;
-* every landmark is born with a weak position prior (sigma about its depth), so a landmark
-  whose projection factors are removed as outliers, or lose their Jacobians when the point
-  falls behind a camera, is never left undetermined;
-* any remaining failure (indeterminant system, cheirality) resets the window from the last
-  good pose with a prior and falls back on wheel odometry for that keyframe.
+  marginalised together with the last pose that saw it; ``C(k)`` goes with ``X(k)``, and what the
+  old states knew about the calibration is carried forward by the marginal on ``C(k+1)``;
+* every landmark is born with a weak position prior (sigma about its depth), so a landmark whose
+  projection factors are removed as outliers, or lose their Jacobians when the point falls behind
+  a camera, is never left undetermined; a floor landmark's ground factor is owned by it and
+  removed with its projection factors;
+* any remaining failure (indeterminant system, cheirality) resets the window from the last good
+  pose (and calibration) with priors and falls back on wheel odometry for that keyframe.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-import cv2
 import gtsam
 import numpy as np
 
 from ..camera import CameraModel
-from ..config import BackendConfig, RobustKind
-from ..geometry import inv_T
-from ..types import BackendOutput, BackendStatus, FrontendOutput, GateOutcome
+from ..config import BackendConfig
+from ..errors import WindowVOError
+from ..geometry import inv_T, make_T, rot_z
+from ..types import BackendOutput, BackendStatus, FrontendOutput, GateOutcome, OdometryStep, ScaleSource
+from . import factors as fac
+from .factors import C, L, X
+from .ground import floor_mask
+from .landmarks import LandmarkManager, reprojection_errors, reprojection_rms, triangulate_midpoint
 
 log = logging.getLogger(__name__)
 
+__all__ = ["C", "L", "OdometryStep", "SlidingWindowBackend", "X"]
 
-def X(k: int) -> int:
-    return gtsam.symbol("x", k)
-
-
-def L(track_id: int) -> int:
-    return gtsam.symbol("l", track_id)
-
-
-@dataclass
-class LandmarkState:
-    key: int
-    last_kf: int
-    factor_indices: list[tuple[int, int]] = field(default_factory=list)  # (keyframe, factor index)
-    strikes: int = 0
+# After a reset the calibration restarts from its last estimate with this share of the prior sigmas.
+RESET_CALIBRATION_SIGMA_FACTOR = 0.2
+# Smallest camera height (m) for which the ground cue makes sense.
+MIN_CAMERA_HEIGHT_M = 0.05
 
 
 @dataclass
-class OdometryStep:
-    """Wheel odometry between the previous keyframe and this one."""
+class WheelCalibration:
+    """Current estimate of the wheels' distance scale and yaw bias (rad per metre)."""
 
-    T_prev_cur: np.ndarray  # T_base(k-1)_base(k)
-    distance_m: float
-    ok: bool = True  # False when odometry was missing or stale for this step
+    scale: float = 1.0
+    yaw_bias_per_m: float = 0.0
+    scale_sigma: float = float("nan")
+    yaw_bias_sigma: float = float("nan")
 
-
-def odometry_noise(cfg: BackendConfig, distance: float, yaw: float):
-    """Noise of a wheel-odometry step, as two parts of one between-measurement.
-
-    The planar part (x, y, yaw) is what wheels measure: tight, growing with distance, under
-    the configured robust loss so that vision can overrule slip. The vertical part (z, roll,
-    pitch) only says "the robot drives on its wheels": loose and plain Gaussian, so it keeps
-    linking the window even where vision is briefly lost (a robust loss would let that link go).
-    Each part leaves the other's components free (sigma 1e3), so together they carry the
-    information of one anisotropic factor.
-    """
-    o = cfg.odometry
-    free = 1e3
-    s_xy = max(o.xy_sigma_min_m, o.xy_sigma_per_m * distance)
-    s_yaw = max(o.yaw_sigma_min_rad, o.yaw_sigma_per_m * distance + 0.02 * abs(yaw))
-    planar = gtsam.noiseModel.Diagonal.Sigmas(np.array([free, free, s_yaw, s_xy, s_xy, free]))
-    vertical = gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([o.roll_pitch_sigma_rad, o.roll_pitch_sigma_rad, free, free, free, o.z_sigma_m]))
-    return robust(planar, o.robust, o.robust_k), vertical
-
-
-def robust(base, kind: RobustKind, k: float):
-    """Wrap a Gaussian noise model in the configured M-estimator (threshold k in sigmas)."""
-    if kind is RobustKind.HUBER:
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
-    if kind is RobustKind.CAUCHY:
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(k), base)
-    return base
+    def correct(self, T_prev_cur: np.ndarray, distance: float) -> np.ndarray:
+        """Wheel step with the calibration removed: what the base probably did."""
+        yaw = float(np.arctan2(T_prev_cur[1, 0], T_prev_cur[0, 0])) - self.yaw_bias_per_m * distance
+        T = make_T(rot_z(yaw), T_prev_cur[:3, 3] / max(self.scale, 1e-3))
+        T[2, 3] = 0.0
+        return T
 
 
 class SlidingWindowBackend:
@@ -102,17 +84,35 @@ class SlidingWindowBackend:
         self.K = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
         self.T_base_cam = camera.T_base_cam
         self.body_P_sensor = gtsam.Pose3(camera.T_base_cam)
-        self.pixel_noise = robust(gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma), cfg.robust, cfg.huber_k)
+        self.pixel_noise = fac.pixel_noise(cfg)
         self.lag = float(cfg.window_keyframes - 1)
-        self._cos_min_angle = float(np.cos(np.radians(cfg.min_triangulation_angle_deg)))
+        self.lm = LandmarkManager(camera, cfg)
+        # Online calibration starts with the first floor landmarks: before, nothing but the wheels could
+        # fix the scale, so a free wheel scale would drift (measured on KITTI, where the road is seldom
+        # tracked). ``calibrate`` says whether the calibration states C(k) are live.
+        self.calibration_wanted = use_odometry and cfg.wheel_calibration.enabled
+        self.calibrate = False
+        self.calib_start = -1
+        self.calib = WheelCalibration()
+        # Ground cue: the camera's height above the floor, and where the floor is in the base frame.
+        g = cfg.ground
+        cam_z = float(self.T_base_cam[2, 3])
+        self.camera_height_m = float(g.camera_height_m) if g.camera_height_m is not None else cam_z
+        self.floor_z = cam_z - self.camera_height_m
+        self.use_ground = g.enabled and self.camera_height_m >= MIN_CAMERA_HEIGHT_M
+        if g.enabled and not self.use_ground:
+            log.warning("ground cue off: camera height %.3f m above the floor is too small (T_base_cam z, "
+                        "or backend.ground.camera_height_m)", self.camera_height_m)
+        self.ground_sigma_m = g.sigma_height_fraction * self.camera_height_m
+        self._rng = np.random.default_rng(g.seed)
+        # Metric scale: from the wheels, or (monocular) once the ground plane has fixed the first baseline.
+        self.metric = use_odometry
+        self.n_ground_factors = 0
+        self.n_ground_keyframes = 0
         self.k = -1
         self.kf_frame: dict[int, int] = {}
         self.kf_time: dict[int, float] = {}
         self.kf_pose: dict[int, np.ndarray] = {}  # latest estimate; final once marginalised
-        self.obs: dict[int, list[tuple[int, np.ndarray]]] = {}  # track id -> [(k, undistorted px)]
-        self.landmarks: dict[int, LandmarkState] = {}
-        self.dead: set[int] = set()
-        self.pending_removal: list[int] = []
         self.estimate: gtsam.Values | None = None
         self.n_resets = 0
         self._new_smoother()
@@ -139,6 +139,15 @@ class SlidingWindowBackend:
     def pose(self, k: int) -> np.ndarray:
         return self.kf_pose[k]
 
+    def scale_sources(self) -> list[ScaleSource]:
+        """What fixes the metric scale of this run."""
+        out = []
+        if self.use_odometry:
+            out.append(ScaleSource.WHEELS_CALIBRATED if self.calibrate else ScaleSource.WHEELS)
+        if self.use_ground and self.n_ground_factors > 0:
+            out.append(ScaleSource.GROUND_PLANE)
+        return out
+
     # ------------------------------------------------------------------ main entry
     def add_keyframe(self, fo: FrontendOutput, odom: OdometryStep | None) -> BackendOutput:
         t0 = time.perf_counter()
@@ -147,44 +156,52 @@ class SlidingWindowBackend:
         self.kf_frame[k] = fo.frame_index
         self.kf_time[k] = fo.timestamp
         status = BackendStatus.OK
-        use_vision = fo.vision_ok
         # New landmarks need a vision-worthy keyframe; each one is still checked for its own
-        # triangulation angle, so low overall parallax (distant scenes) does not block it.
+        # triangulation angle, so low overall parallax (distant scenes, turning) does not block it.
         allow_new = fo.gate in (GateOutcome.PASS, GateOutcome.LOW_PARALLAX) or k == 1
         T_guess = self._initial_guess(fo, odom)
+        n_new = n_vis = n_ground = 0
         try:
-            n_new, n_vis = self._update(fo, odom, T_guess, use_vision, allow_new)
+            n_new, n_vis, n_ground = self._update(fo, odom, T_guess, fo.vision_ok, allow_new)
             if k == 0:
                 status = BackendStatus.INIT
-            elif not use_vision:
+            elif not fo.vision_ok:
                 status = BackendStatus.ODOMETRY_FALLBACK
         except RuntimeError as err:
             msg = " ".join(str(err).split())[:300]
             log.warning("keyframe %d (frame %d): smoother failed (%s); resetting the window from the last good pose",
                         k, fo.frame_index, msg)
             self._reset_with(fo, odom, T_guess)
-            n_new, n_vis = 0, 0
             status = BackendStatus.RECOVERED
-        out = self._output(fo, n_new, n_vis, status)
+        out = self._output(fo, n_new, n_vis, n_ground, status)
         out.backend_ms = (time.perf_counter() - t0) * 1000.0
         return out
 
     # ------------------------------------------------------------------ pieces
+    def _odometry_usable(self, odom: OdometryStep | None) -> bool:
+        return odom is not None and odom.ok and self.use_odometry
+
     def _initial_guess(self, fo: FrontendOutput, odom: OdometryStep | None) -> np.ndarray:
         k = self.k
         if k == 0:
             return np.eye(4)
         T_prev = self.kf_pose[k - 1]
-        if odom is not None and odom.ok and self.use_odometry:
-            return T_prev @ odom.T_prev_cur
-        T_pnp = self._pnp(fo)
+        if odom is not None and self._odometry_usable(odom):
+            return T_prev @ self.calib.correct(odom.T_prev_cur, odom.distance_m)
+        T_pnp = self.lm.pnp_pose(fo.track_ids, fo.pixels_undistorted, self.estimate, self.cfg.pixel_sigma)
         if T_pnp is not None:
             return T_pnp
         if k == 1 and fo.R_cam_kf_cam is not None and fo.t_dir_kf is not None:
-            # Two-view initialisation with a unit baseline: X_cur = R X_kf + t.
-            T_cur_kf = np.eye(4)
-            T_cur_kf[:3, :3] = fo.R_cam_kf_cam
-            T_cur_kf[:3, 3] = fo.t_dir_kf / max(np.linalg.norm(fo.t_dir_kf), 1e-9)
+            # Two-view initialisation: X_cur = R X_kf + t, with a unit baseline, or the metric one the
+            # floor gives (camera at its known height).
+            t_unit = fo.t_dir_kf / max(np.linalg.norm(fo.t_dir_kf), 1e-9)
+            baseline = self._two_view_ground_baseline(fo, t_unit) if self.use_ground else None
+            if baseline is not None:
+                self.metric = True
+                log.info("monocular start: the floor plane sets the first baseline to %.3f m (metric)", baseline)
+            elif self.use_ground:
+                log.warning("monocular start: no floor plane in the first two keyframes; the run is up to scale")
+            T_cur_kf = make_T(fo.R_cam_kf_cam, t_unit * (baseline or 1.0))
             T_world_cam = T_prev @ self.T_base_cam @ inv_T(T_cur_kf)
             return T_world_cam @ inv_T(self.T_base_cam)
         if k >= 2:  # constant velocity
@@ -192,314 +209,312 @@ class SlidingWindowBackend:
             return T_prev @ d
         return T_prev.copy()
 
-    def _pnp(self, fo: FrontendOutput) -> np.ndarray | None:
-        if self.estimate is None:
+    def _two_view_ground_baseline(self, fo: FrontendOutput, t_unit: np.ndarray) -> float | None:
+        """Length of the first baseline that puts the floor at the camera's known height."""
+        assert fo.R_cam_kf_cam is not None
+        T_cur_kf = make_T(fo.R_cam_kf_cam, t_unit)
+        # Both keyframes in a unit-baseline world anchored at keyframe 0's base.
+        T_b0_c1 = self.T_base_cam @ inv_T(T_cur_kf)
+        cams = LandmarkManager.camera_poses({0: np.eye(4)}, self.T_base_cam)
+        cams[1] = (T_b0_c1[:3, :3], T_b0_c1[:3, 3])
+        cur = dict(zip(fo.track_ids.tolist(), fo.pixels_undistorted))
+        cos_min = float(np.cos(np.radians(self.cfg.min_triangulation_angle_deg)))
+        pts = []
+        for tid, lst in self.lm.obs.items():
+            first = [p for kk, p in lst if kk == 0]
+            if first and tid in cur:
+                p = triangulate_midpoint(self.camera, self.cfg.model_copy(update={"max_landmark_depth_m": 1e6}),
+                                         [(0, first[0]), (1, cur[tid])], cams, cos_min)
+                if p is not None:
+                    pts.append(p)
+        if len(pts) < self.cfg.ground.min_points:
             return None
-        pts3, pts2 = [], []
-        for tid, uv in zip(fo.track_ids.tolist(), fo.pixels_undistorted):
-            lm = self.landmarks.get(tid)
-            if lm is not None and self.estimate.exists(lm.key):
-                pts3.append(self.estimate.atPoint3(lm.key))
-                pts2.append(uv)
-        if len(pts3) < 12:
-            return None
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            np.asarray(pts3, np.float64), np.asarray(pts2, np.float64), self.camera.K, None,
-            reprojectionError=2.0 * self.cfg.pixel_sigma + 1.0, iterationsCount=100, flags=cv2.SOLVEPNP_EPNP
-        )
-        if not ok or inl is None or len(inl) < 10:
-            return None
-        R, _ = cv2.Rodrigues(rvec)
-        T_cam_world = np.eye(4)
-        T_cam_world[:3, :3] = R
-        T_cam_world[:3, 3] = tvec.ravel()
-        return inv_T(T_cam_world) @ inv_T(self.T_base_cam)
+        # The camera's offset inside the base is metric while the points are in baseline units: fit
+        # the plane around the camera centre instead (a rotation-only base frame at the camera).
+        cam_c = self.T_base_cam[:3, 3]
+        shifted = np.asarray(pts) - cam_c
+        from .ground import fit_floor_plane, floor_candidates
 
-    def _motion_factors(self, graph, k: int, odom: OdometryStep | None, fo: FrontendOutput, T_guess) -> None:
-        cfg = self.cfg
+        cand = floor_candidates(shifted, np.zeros(3), 1.0, self.cfg.ground)
+        fit = fit_floor_plane(shifted[cand], np.zeros(3), 1.0, self.cfg.ground, self._rng, metric_scale_known=False)
+        if fit is None or fit.camera_height_m <= 1e-6:
+            return None
+        return self.camera_height_m / fit.camera_height_m
+
+    def _motion_factors(self, graph, values, stamps, k: int, odom: OdometryStep | None, T_guess) -> None:
+        """First-pose prior, wheel factors (through the calibration state) or a monocular motion prior."""
         if k == 0:
-            graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-4)))
+            graph.add(fac.first_pose_prior(X(0), np.eye(4)))
             return
-        if odom is not None and odom.ok and self.use_odometry:
-            yaw = float(np.arctan2(odom.T_prev_cur[1, 0], odom.T_prev_cur[0, 0]))
-            planar_noise, vertical_noise = odometry_noise(cfg, odom.distance_m, yaw)
-            meas = gtsam.Pose3(odom.T_prev_cur)
-            graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), meas, planar_noise))
-            graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), meas, vertical_noise))
+        usable = odom is not None and self._odometry_usable(odom)
+        if self.calibrate:
+            # C(k) always joins with a prior (the first one) or a random walk from C(k-1), so the chain never breaks.
+            values.insert(C(k), np.array([self.calib.scale, self.calib.yaw_bias_per_m]))
+            stamps[C(k)] = float(k)
+            if k == self.calib_start:
+                wc = self.cfg.wheel_calibration
+                graph.add(fac.calibration_prior(k, self.calib.scale, self.calib.yaw_bias_per_m,
+                                                wc.scale_prior_sigma, wc.yaw_bias_prior_sigma))
+            else:
+                graph.add(fac.calibration_random_walk(self.cfg, k, odom.distance_m if odom is not None else 0.0))
+        if usable:
+            assert odom is not None
+            for f in fac.odometry_factors(self.cfg, k, odom.T_prev_cur, odom.distance_m, self.calibrate):
+                graph.add(f)
             return
-        # Monocular (or odometry missing for this step).
         delta = inv_T(self.kf_pose[k - 1]) @ T_guess
-        if k == 1 and not self.use_odometry:
-            # Gauge for scale: the first baseline has unit length.
-            noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.1, 0.1, 0.1, 0.02, 0.02, 0.02]))
-        else:
-            # A weak motion prior only keeps the system determined when vision is thin.
-            noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.5, 0.5, 0.5, 5.0, 5.0, 5.0]))
-        graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), gtsam.Pose3(delta), noise))
+        graph.add(fac.monocular_motion_factor(k, delta, first_baseline=(k == 1 and not self.use_odometry)))
 
-    def _planar_factors(self, graph, k: int, T_guess: np.ndarray) -> None:
-        pp = self.cfg.planar_prior
-        if not pp.enabled or k == 0:
-            return
-        base = gtsam.noiseModel.Isotropic.Sigma(2, pp.sigma_rad)
-        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(pp.huber_k), base)
-        up = gtsam.Unit3(np.array([0.0, 0.0, 1.0]))
-        graph.add(gtsam.AttitudeFactorPose3(X(k), up, noise, up))
-        if pp.height_prior:
-            sig = np.array([1e3, 1e3, 1e3, 1e3, 1e3, pp.height_sigma_m])
-            R = T_guess[:3, :3]
-            graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(gtsam.Rot3(R), np.array([T_guess[0, 3], T_guess[1, 3], 0.0])),
-                                             gtsam.noiseModel.Diagonal.Sigmas(sig)))
-
-    def _proj(self, uv: np.ndarray, k: int, key: int):
-        return gtsam.GenericProjectionFactorCal3_S2(np.asarray(uv, float), self.pixel_noise, X(k), key, self.K,
-                                                    self.body_P_sensor)
-
-    def _camera_poses(self, poses: dict[int, np.ndarray]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-        """T_world_cam rotation and centre per keyframe, computed once per update."""
-        out = {}
-        for kk, T in poses.items():
-            T_wc = T @ self.T_base_cam
-            out[kk] = (T_wc[:3, :3], T_wc[:3, 3])
-        return out
-
-    def _try_triangulate(self, tid: int, cams: dict[int, tuple[np.ndarray, np.ndarray]]) -> np.ndarray | None:
-        """Midpoint triangulation of a track over the window, with angle, depth and reprojection checks."""
-        cfg = self.cfg
-        obs = [(kk, uv) for kk, uv in self.obs.get(tid, []) if kk in cams]
-        if len(obs) < 2:
-            return None
-        K = self.camera
-        # Cheap test first: the rays of the first and last observation must already diverge.
-        (k_a, uv_a), (k_b, uv_b) = obs[0], obs[-1]
-        ra = cams[k_a][0] @ np.array([(uv_a[0] - K.cx) / K.fx, (uv_a[1] - K.cy) / K.fy, 1.0])
-        rb = cams[k_b][0] @ np.array([(uv_b[0] - K.cx) / K.fx, (uv_b[1] - K.cy) / K.fy, 1.0])
-        if np.dot(ra, rb) / np.sqrt(np.dot(ra, ra) * np.dot(rb, rb)) > self._cos_min_angle:
-            return None
-        uv = np.asarray([o[1] for o in obs])
-        R = np.stack([cams[kk][0] for kk, _ in obs])  # (n, 3, 3) R_world_cam
-        c = np.stack([cams[kk][1] for kk, _ in obs])  # (n, 3) camera centres
-        rays_c = np.stack([(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy, np.ones(len(obs))], axis=1)
-        d = np.einsum("nij,nj->ni", R, rays_c)
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        if np.degrees(np.arccos(np.clip(np.min(d @ d.T), -1, 1))) < cfg.min_triangulation_angle_deg:
-            return None
-        P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-        A = P.sum(axis=0)
-        b = np.einsum("nij,nj->i", P, c)
-        if np.linalg.det(A) < 1e-9:
-            return None
-        p = np.linalg.solve(A, b)
-        pc = np.einsum("nji,nj->ni", R, p[None, :] - c)  # R^T (p - c)
-        z = pc[:, 2]
-        if np.any(z <= 0.1) or np.any(z > cfg.max_landmark_depth_m):
-            return None
-        proj = np.stack([K.fx * pc[:, 0] / z + K.cx, K.fy * pc[:, 1] / z + K.cy], axis=1)
-        if np.max(np.linalg.norm(proj - uv, axis=1)) > cfg.max_reprojection_px:
-            return None
-        return p
-
-    def _update(self, fo: FrontendOutput, odom, T_guess, use_vision: bool, allow_new: bool) -> tuple[int, int]:
+    def _update(self, fo: FrontendOutput, odom, T_guess, use_vision: bool, allow_new: bool) -> tuple[int, int, int]:
         k = self.k
+        cfg = self.cfg
+        if self.calibration_wanted and not self.calibrate and self.n_ground_keyframes > 0:
+            self.calibrate, self.calib_start = True, k
+            log.info("keyframe %d: the floor is in view; wheel scale and yaw bias are now estimated online", k)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         stamps: dict[int, float] = {}
         values.insert(X(k), gtsam.Pose3(T_guess))
         stamps[X(k)] = float(k)
-        self._motion_factors(graph, k, odom, fo, T_guess)
-        self._planar_factors(graph, k, T_guess)
-        # Outlier landmarks flagged after the previous update: remove their factors, keep the
-        # key alive with a weak prior until it is marginalised.
-        remove = list(self.pending_removal)
-        self.pending_removal = []
+        self._motion_factors(graph, values, stamps, k, odom, T_guess)
+        if cfg.planar_prior.enabled and k > 0:
+            graph.add(fac.planar_attitude_factor(X(k), cfg))
+            if cfg.planar_prior.height_prior:
+                graph.add(fac.height_prior_factor(X(k), T_guess, cfg.planar_prior.height_sigma_m))
+        # Outlier landmarks flagged after the previous update: remove their factors; the key stays
+        # alive with its birth prior until it is marginalised.
+        remove = self.lm.take_removals()
         owners: list[tuple[int, int] | None] = [None] * graph.size()  # (track id, keyframe) per factor
         w0 = self.window_start(k)
-        n_vis = 0
+        n_vis = n_ground = 0
         new_lms: list[int] = []
-        candidates: list[int] = []
-        cam_center = (T_guess @ self.T_base_cam)[:3, 3]
         if use_vision:
             poses = {kk: self.kf_pose[kk] for kk in range(w0, k)}
             poses[k] = T_guess
-            cams = self._camera_poses(poses)
-            for tid, uv in zip(fo.track_ids.tolist(), fo.pixels_undistorted):
-                if tid in self.dead:
-                    continue
-                lm = self.landmarks.get(tid)
-                if lm is not None:
-                    graph.add(self._proj(uv, k, lm.key))
-                    owners.append((tid, k))
-                    stamps[lm.key] = float(k)
-                    lm.last_kf = k
-                    n_vis += 1
-                    continue
-                lst = self.obs.setdefault(tid, [])
-                lst.append((k, np.asarray(uv, float)))
-                if allow_new and len(lst) >= self.cfg.min_landmark_observations:
-                    candidates.append(tid)
-            # New landmarks, longest tracks first, up to the landmark budget of the window.
-            budget = self.cfg.max_landmarks - len(self.landmarks)
-            candidates.sort(key=lambda t: -len(self.obs[t]))
-            for tid in candidates:
-                if budget <= 0:
-                    break
-                lst = self.obs[tid]
-                p = self._try_triangulate(tid, cams)
-                if p is None:
-                    continue
+            cams = LandmarkManager.camera_poses(poses, self.T_base_cam)
+            seen, candidates = self.lm.observe(fo.track_ids, fo.pixels_undistorted, k, allow_new)
+            for tid, uv in seen:
+                key = L(tid)
+                graph.add(fac.projection_factor(uv, X(k), key, self.pixel_noise, self.K, self.body_P_sensor))
+                owners.append((tid, k))
+                stamps[key] = float(k)
+                n_vis += 1
+            born = self._triangulate_candidates(candidates, cams, T_guess)
+            on_floor, floor_normal = self._floor_of(born, T_guess)
+            born, on_floor = self._within_budget(born, on_floor)
+            cam_center = (T_guess @ self.T_base_cam)[:3, 3]
+            for (tid, p), floor in zip(born, on_floor):
                 key = L(tid)
                 values.insert(key, gtsam.Point3(p))
                 stamps[key] = float(k)
-                # A weak prior (sigma ~ depth) keeps the landmark determined even if its
-                # projection factors lose their Jacobians (point behind a camera) or are
-                # removed as outliers; it is negligible next to real observations.
-                depth = float(np.linalg.norm(p - cam_center))
-                graph.add(gtsam.PriorFactorPoint3(key, p, gtsam.noiseModel.Isotropic.Sigma(3, max(1.0, depth))))
+                graph.add(fac.landmark_birth_prior(key, p, float(np.linalg.norm(p - cam_center))))
                 owners.append(None)
-                for kk, uv_k in lst:
+                for kk, uv_k in self.lm.promote(tid, k, bool(floor)):
                     if kk >= w0:
-                        graph.add(self._proj(uv_k, kk, key))
+                        graph.add(fac.projection_factor(uv_k, X(kk), key, self.pixel_noise, self.K,
+                                                        self.body_P_sensor))
                         owners.append((tid, kk))
                         n_vis += 1
-                self.landmarks[tid] = LandmarkState(key, k)
+                if floor:
+                    graph.add(fac.ground_factor(X(k), key, floor_normal, self.floor_z, self.ground_sigma_m, cfg))
+                    owners.append((tid, k))
+                    n_ground += 1
                 new_lms.append(tid)
-                del self.obs[tid]
-                budget -= 1
         ts_map = gtsam.FixedLagSmootherKeyTimestampMap()
         for key, t in stamps.items():
             ts_map.insert((key, t))
         try:
             idx = self._submit(graph, values, ts_map, remove)
-            for _ in range(self.cfg.extra_iterations if k > 2 else 2):
+            for _ in range(cfg.extra_iterations if k > 2 else 2):
                 self.smoother.update()  # more Gauss-Newton steps (iSAM2 takes one per update)
             self.estimate = self.smoother.calculateEstimate()
         except RuntimeError:
             # Undo the bookkeeping of this update before the caller resets the window.
-            for tid in new_lms:
-                self.landmarks.pop(tid, None)
-                self.dead.add(tid)
+            self.lm.forget(new_lms)
             raise
-        for fi, owner in zip(idx, owners):
-            if owner is not None and owner[0] in self.landmarks:
-                self.landmarks[owner[0]].factor_indices.append((owner[1], int(fi)))
-        self._refresh_poses()
-        self._prune(k)
-        self._check_outliers(fo)
-        return len(new_lms), n_vis
+        self.lm.record_factors(owners, idx)
+        self.n_ground_factors += n_ground
+        self.n_ground_keyframes += int(n_ground > 0)
+        self._refresh_states()
+        self.lm.prune(w0)
+        ids, p_world, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, k, self.estimate)
+        errs = reprojection_errors(self.camera, self.kf_pose[k], self.T_base_cam, p_world, uv)
+        self.lm.check_outliers(ids, errs, self.window_start(k + 1))
+        return len(new_lms), n_vis, n_ground
+
+    def _ground_active(self) -> bool:
+        return self.use_ground and self.metric
+
+    def _triangulate_candidates(self, candidates: list[int], cams, T_guess: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        """Triangulate tracks, longest first, while the landmark budgets have room.
+
+        Floor landmarks fix the metric scale, so tracks below the horizon have a budget of their own
+        (``ground.max_landmarks``) besides the window's ``max_landmarks``."""
+        reg_left, floor_left = self.lm.budgets(self.cfg.ground.max_landmarks if self._ground_active() else 0)
+        below = self._below_horizon(candidates, T_guess) if floor_left > 0 else np.zeros(len(candidates), bool)
+        born: list[tuple[int, np.ndarray]] = []
+        for tid, is_below in zip(candidates, below):
+            if reg_left <= 0 and floor_left <= 0:
+                break
+            if (floor_left if is_below else reg_left) <= 0:
+                continue
+            p = self.lm.triangulate(tid, cams)
+            if p is None:
+                continue
+            born.append((tid, p))
+            if is_below:
+                floor_left -= 1
+            else:
+                reg_left -= 1
+        return born
+
+    def _below_horizon(self, tids: list[int], T_guess: np.ndarray) -> np.ndarray:
+        """Whether each track's newest ray points below the horizon (a cheap floor pre-check)."""
+        if not tids:
+            return np.zeros(0, bool)
+        uv = np.asarray([self.lm.obs[t][-1][1] for t in tids])
+        K = self.camera
+        rays = np.stack([(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy, np.ones(len(uv))], axis=1)
+        d = rays @ self.T_base_cam[:3, :3].T
+        dep = np.degrees(np.arctan2(-d[:, 2], np.hypot(d[:, 0], d[:, 1])))
+        return dep >= self.cfg.ground.min_depression_deg
+
+    def _within_budget(self, born: list[tuple[int, np.ndarray]], on_floor: np.ndarray
+                       ) -> tuple[list[tuple[int, np.ndarray]], np.ndarray]:
+        """Keep floor landmarks within the floor budget and the others within the window's budget."""
+        reg_left, floor_left = self.lm.budgets(self.cfg.ground.max_landmarks if self._ground_active() else 0)
+        keep = []
+        for i, floor in enumerate(on_floor):
+            if floor and floor_left > 0:
+                floor_left -= 1
+                keep.append(i)
+            elif reg_left > 0:
+                reg_left -= 1
+                on_floor[i] = False
+                keep.append(i)
+        return [born[i] for i in keep], on_floor[keep]
+
+    def _floor_of(self, born: list[tuple[int, np.ndarray]], T_guess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Which new landmarks lie on the floor (plane fitted over the window's landmarks and them), and the
+        floor's normal in the base frame."""
+        up = np.array([0.0, 0.0, 1.0])
+        if not self._ground_active() or not born:
+            return np.zeros(len(born), bool), up
+        new_pts = np.asarray([p for _, p in born])
+        old_pts = self.lm.positions(self.estimate)[1] if self.estimate is not None else np.zeros((0, 3))
+        pts = np.concatenate([new_pts, old_pts])
+        mask, _ = floor_mask(pts, T_guess, self.T_base_cam, self.camera_height_m, self.cfg.ground, self._rng)
+        # The factor uses the base's own z axis: a normal refitted per keyframe from the triangulated points
+        # was measured to be noisier than the base attitude the smoother estimates from all the evidence.
+        return mask[: len(born)], up
 
     def _submit(self, graph, values, ts_map, remove) -> list[int]:
         """One smoother update; returns the smoother's indices of the new factors."""
         self.smoother.update(graph, values, ts_map, remove)
         return list(self.smoother.getISAM2Result().getNewFactorsIndices())
 
-    def _refresh_poses(self) -> None:
+    def _refresh_states(self) -> None:
         est = self.estimate
+        assert est is not None
         for kk in range(self.window_start(), self.k + 1):
             if est.exists(X(kk)):
                 self.kf_pose[kk] = est.atPose3(X(kk)).matrix()
+        if self.calibrate and est.exists(C(self.k)):
+            c = est.atPoint2(C(self.k))
+            self.calib.scale, self.calib.yaw_bias_per_m = float(c[0]), float(c[1])
 
-    def _prune(self, k: int) -> None:
-        """Forget bookkeeping of keys the smoother has marginalised."""
-        w0 = self.window_start(k)
-        for tid in [t for t, lm in self.landmarks.items() if lm.last_kf < w0]:
-            del self.landmarks[tid]
-            self.dead.add(tid)
-        for tid in list(self.obs):
-            kept = [(kk, uv) for kk, uv in self.obs[tid] if kk >= w0]
-            if kept:
-                self.obs[tid] = kept
-            else:
-                del self.obs[tid]
-        # Dead ids only matter while their tracks may still be alive in the front end.
-        if len(self.dead) > 50_000:
-            self.dead = set(sorted(self.dead)[-20_000:])
-
-    def _check_outliers(self, fo: FrontendOutput) -> None:
-        """Landmarks whose reprojection error stays large on two keyframes are dropped."""
-        k = self.k
-        T_cw = inv_T(self.kf_pose[k] @ self.T_base_cam)
-        for tid, uv in zip(fo.track_ids.tolist(), fo.pixels_undistorted):
-            lm = self.landmarks.get(tid)
-            if lm is None or lm.last_kf != k or not self.estimate.exists(lm.key):
-                continue
-            p = self.estimate.atPoint3(lm.key)
-            pc = T_cw[:3, :3] @ p + T_cw[:3, 3]
-            err = np.inf if pc[2] <= 0.05 else np.hypot(*(self.camera.K @ (pc / pc[2]))[:2] - uv)
-            if err > self.cfg.outlier_residual_px:
-                lm.strikes += 1
-                if lm.strikes >= 2:
-                    # Factors on marginalised poses are already gone from the smoother.
-                    w_next = self.window_start(k + 1)
-                    self.pending_removal.extend(fi for kk, fi in lm.factor_indices if kk >= w_next)
-                    del self.landmarks[tid]
-                    self.dead.add(tid)
-            else:
-                lm.strikes = 0
+    def calibration_with_sigma(self) -> WheelCalibration:
+        """The newest calibration estimate with its marginal sigmas (computed on request: costs a solve)."""
+        cal = WheelCalibration(self.calib.scale, self.calib.yaw_bias_per_m)
+        if self.calibrate and self.estimate is not None and self.estimate.exists(C(self.k)):
+            try:
+                cov = self.smoother.marginalCovariance(C(self.k))
+                cal.scale_sigma, cal.yaw_bias_sigma = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
+            except RuntimeError as err:  # pragma: no cover - diagnostics only
+                log.debug("no marginal covariance of the calibration: %s", err)
+        return cal
 
     def _reset_with(self, fo: FrontendOutput, odom, T_guess: np.ndarray) -> None:
-        """Start a fresh window from the last good pose; this keyframe rests on odometry."""
-        k = self.k
+        """Start a fresh window from the last good pose and calibration; this keyframe rests on odometry.
+
+        If even that fails, the window restarts from this keyframe's guess alone; if that fails too,
+        the run stops with a clear error (the pipeline still writes what it has)."""
         self.n_resets += 1
+        try:
+            self._restart_window(fo, odom, T_guess, with_previous=self.k > 0)
+        except RuntimeError as err:
+            log.warning("keyframe %d: reset from the last good pose failed (%s); restarting from this keyframe",
+                        self.k, " ".join(str(err).split())[:200])
+            try:
+                self._restart_window(fo, None, T_guess, with_previous=False)
+            except RuntimeError as err2:
+                raise WindowVOError(f"the smoother could not restart at keyframe {self.k} (frame "
+                                    f"{fo.frame_index}): {' '.join(str(err2).split())[:200]}") from None
+
+    def _restart_window(self, fo: FrontendOutput, odom, T_guess: np.ndarray, with_previous: bool) -> None:
+        k = self.k
         self._new_smoother()
-        for tid in list(self.landmarks):
-            self.dead.add(tid)
-        self.landmarks.clear()
-        self.obs.clear()
-        self.pending_removal = []
-        T_prev = self.kf_pose.get(k - 1, np.eye(4))
+        self.lm.restart(k, fo.track_ids, fo.pixels_undistorted)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
-        ts_map = gtsam.FixedLagSmootherKeyTimestampMap()
-        if k == 0:
-            graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-4)))
-        else:
-            prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.01, 0.01, 0.02, 0.02, 0.02]))
-            graph.add(gtsam.PriorFactorPose3(X(k - 1), gtsam.Pose3(T_prev), prior))
+        stamps: dict[int, float] = {}
+        if self.calibrate and self.calib_start >= self.k:  # the calibration started in the failed update
+            self.calibrate, self.calib_start = False, -1
+        if with_previous:
+            T_prev = self.kf_pose.get(k - 1, np.eye(4))
+            graph.add(fac.reset_prior(X(k - 1), T_prev, self.cfg))
             values.insert(X(k - 1), gtsam.Pose3(T_prev))
-            ts_map.insert((X(k - 1), float(k - 1)))
-            self._motion_factors(graph, k, odom, fo, T_guess)
+            stamps[X(k - 1)] = float(k - 1)
+            if self.calibrate:
+                wc = self.cfg.wheel_calibration
+                f = RESET_CALIBRATION_SIGMA_FACTOR
+                values.insert(C(k - 1), np.array([self.calib.scale, self.calib.yaw_bias_per_m]))
+                stamps[C(k - 1)] = float(k - 1)
+                graph.add(fac.calibration_prior(k - 1, self.calib.scale, self.calib.yaw_bias_per_m,
+                                                f * wc.scale_prior_sigma, f * wc.yaw_bias_prior_sigma))
+            self._motion_factors(graph, values, stamps, k, odom, T_guess)
+        else:
+            graph.add(fac.first_pose_prior(X(k), T_guess))
+            if self.calibrate:  # the chain restarts here from the last estimate with the full prior
+                self.calib_start = k
+                wc = self.cfg.wheel_calibration
+                values.insert(C(k), np.array([self.calib.scale, self.calib.yaw_bias_per_m]))
+                stamps[C(k)] = float(k)
+                graph.add(fac.calibration_prior(k, self.calib.scale, self.calib.yaw_bias_per_m,
+                                                wc.scale_prior_sigma, wc.yaw_bias_prior_sigma))
         values.insert(X(k), gtsam.Pose3(T_guess))
-        ts_map.insert((X(k), float(k)))
+        stamps[X(k)] = float(k)
+        ts_map = gtsam.FixedLagSmootherKeyTimestampMap()
+        for key, t in stamps.items():
+            ts_map.insert((key, t))
         self.smoother.update(graph, values, ts_map)
         self.estimate = self.smoother.calculateEstimate()
         self.kf_pose[k] = self.estimate.atPose3(X(k)).matrix()
-        if k > 0:
+        if with_previous:
             self.kf_pose[k - 1] = self.estimate.atPose3(X(k - 1)).matrix()
-        # Observations of this keyframe seed new landmarks once the next keyframe arrives.
-        for tid, uv in zip(fo.track_ids.tolist(), fo.pixels_undistorted):
-            self.obs[tid] = [(k, np.asarray(uv, float))]
-        self.dead.difference_update(fo.track_ids.tolist())
+        self._refresh_states()
 
-    def _output(self, fo: FrontendOutput, n_new: int, n_vis: int, status: BackendStatus) -> BackendOutput:
+    def _output(self, fo: FrontendOutput, n_new: int, n_vis: int, n_ground: int,
+                status: BackendStatus) -> BackendOutput:
         est = self.estimate
-        ids, pts = [], []
-        for tid, lm in self.landmarks.items():
-            if est.exists(lm.key):
-                ids.append(tid)
-                pts.append(est.atPoint3(lm.key))
-        # Reprojection RMS over this keyframe's observations of landmarks.
-        T_cw = inv_T(self.kf_pose[self.k] @ self.T_base_cam)
-        errs = []
-        for tid, uv in zip(fo.track_ids.tolist(), fo.pixels_undistorted):
-            lm = self.landmarks.get(tid)
-            if lm is None or lm.last_kf != self.k or not est.exists(lm.key):
-                continue
-            pc = T_cw[:3, :3] @ est.atPoint3(lm.key) + T_cw[:3, 3]
-            if pc[2] > 0.05:
-                pr = self.camera.K @ (pc / pc[2])
-                errs.append(np.hypot(pr[0] - uv[0], pr[1] - uv[1]))
-        rms = float(np.sqrt(np.mean(np.square(np.minimum(errs, 50.0))))) if errs else float("nan")
+        assert est is not None
+        ids, pts = self.lm.positions(est)
+        _, p_seen, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, self.k, est)
+        rms = reprojection_rms(reprojection_errors(self.camera, self.kf_pose[self.k], self.T_base_cam, p_seen, uv))
         w0 = self.window_start()
         return BackendOutput(
             frame_index=fo.frame_index,
             timestamp=fo.timestamp,
             T_world_base=self.kf_pose[self.k].copy(),
             keyframe_poses={self.kf_frame[kk]: self.kf_pose[kk] for kk in range(w0, self.k + 1)},
-            p_world_landmarks=np.asarray(pts).reshape(-1, 3),
-            landmark_ids=np.asarray(ids, np.int64),
+            p_world_landmarks=pts,
+            landmark_ids=ids,
             n_landmarks=len(ids),
             n_new_landmarks=n_new,
             n_vision_factors=n_vis,
             reprojection_rms_px=rms,
             status=status,
+            n_ground_factors=n_ground,
+            wheel_scale=self.calib.scale if self.calibrate else float("nan"),
+            wheel_yaw_bias_per_m=self.calib.yaw_bias_per_m if self.calibrate else float("nan"),
         )

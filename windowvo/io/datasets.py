@@ -4,8 +4,9 @@ Frames each loader assumes (base = the robot/body frame of ``T_world_base``):
 
 * **kitti** (odometry benchmark: ``image_0/``, ``calib.txt``, ``times.txt``, ``poses.txt``):
   intrinsics from ``P0``; no distortion (rectified). KITTI has no base frame, so the base is
-  placed at camera 0 with robot axes (x forward, y left, z up): ``T_base_cam`` is the pure
-  axis change. ``poses.txt`` holds ``T_cam0_camk``; ground truth becomes
+  placed on the road 1.65 m below camera 0 (KITTI set-up), with robot axes (x forward, y left,
+  z up): ``T_base_cam`` is the axis change lifted by the camera height, so the ground-plane cue
+  works by default. ``poses.txt`` holds ``T_cam0_camk``; ground truth becomes
   ``T_world_base = T_base_cam T_cam0_camk T_cam_base``.
 * **tum** (TUM RGB-D: ``rgb.txt``, ``rgb/``, ``groundtruth.txt``): intrinsics from the config's
   ``camera`` section (TUM does not ship them in the folder); base = camera with robot axes;
@@ -43,6 +44,8 @@ from .trajectory import Trajectory
 log = logging.getLogger(__name__)
 
 T_BASE_CAM_FORWARD = make_T(R_BASE_CAM_FORWARD, np.zeros(3))
+# Height of KITTI's camera 0 above the road (KITTI set-up).
+KITTI_CAMERA_HEIGHT_M = 1.65
 
 
 def _camera_from_config(c: CameraConfig | None, what: str) -> CameraModel:
@@ -107,23 +110,23 @@ def load_kitti(root: Path) -> Sequence:
     if not root.is_dir():
         raise SequenceError(f"sequence folder not found: {root}")
     images = list_images(root / "image_0")
-    P0, baseline = read_kitti_calib(root / "calib.txt")
+    P0, _ = read_kitti_calib(root / "calib.txt")
     import cv2
 
     first = cv2.imread(str(images[0]), cv2.IMREAD_GRAYSCALE)
     if first is None:
         raise SequenceError(f"cannot read {images[0]}")
     h, w = first.shape
-    cam = CameraModel(w, h, P0[0, 0], P0[1, 1], P0[0, 2], P0[1, 2], DistortionModel.NONE, (), T_BASE_CAM_FORWARD)
+    # The base lies on the road below camera 0, with robot axes (KITTI set-up: the camera is 1.65 m up).
+    T_base_cam = make_T(R_BASE_CAM_FORWARD, np.array([0.0, 0.0, KITTI_CAMERA_HEIGHT_M]))
+    cam = CameraModel(w, h, P0[0, 0], P0[1, 1], P0[0, 2], P0[1, 2], DistortionModel.NONE, (), T_base_cam)
     times = read_times(root / "times.txt", len(images))
     gt = None
     if (root / "poses.txt").is_file():
         T_c0_ck = read_kitti_poses(root / "poses.txt", len(images))
         T_bc = cam.T_base_cam
         gt = _anchor(times, np.einsum("ij,njk,kl->nil", T_bc, T_c0_ck, inv_T(T_bc)))
-    seq = Sequence(root, images, times, cam, None, gt, [], name=root.name)
-    seq.stereo_baseline_m = baseline  # type: ignore[attr-defined]
-    return seq
+    return Sequence(root, images, times, cam, None, gt, [], name=root.name)
 
 
 # ---------------------------------------------------------------------------- TUM RGB-D

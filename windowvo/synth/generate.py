@@ -79,6 +79,7 @@ class SynthSpec:
     camera_pitch_deg: float = 8.0
     vibration_deg: float = 0.0  # roll/pitch vibration amplitude
     ramp_height_m: float = 0.0  # >0 puts a ramp in the path (use with path=ramp)
+    floor_contrast: float = 1.0  # floor texture contrast (0: a featureless floor)
     n_obstacles: int = 10
     n_moving: int = 0
     image_noise: float = 0.0  # std of additive noise, grey levels
@@ -186,7 +187,7 @@ def build_world(spec: SynthSpec) -> SyntheticWorld:
         moving.append(
             MovingBox(ahead - 2.5 * side, ahead + 2.5 * side, (0.5, 0.5, 1.7), float(rng.uniform(5, 8)), spec.seed + 100 + k)
         )
-    scene = make_room_scene(spec.seed, half_x, half_y, 3.0, obstacles, ramp, moving)
+    scene = make_room_scene(spec.seed, half_x, half_y, 3.0, obstacles, ramp, moving, spec.floor_contrast)
     return SyntheticWorld(spec, scene, camera_for(spec), planar)
 
 

@@ -31,6 +31,7 @@ class Plane:
     length_v: float
     tex_offset: tuple[float, float] = (0.0, 0.0)
     brightness: float = 1.0
+    contrast: float = 1.0  # texture contrast around mid-grey (0: a uniform, featureless surface)
 
     @property
     def normal(self) -> np.ndarray:
@@ -140,8 +141,10 @@ def make_room_scene(
     obstacles: list[tuple[float, float, float, float, float]] | None = None,
     ramp: Ramp | None = None,
     moving: list[MovingBox] | None = None,
+    floor_contrast: float = 1.0,
 ) -> Scene:
-    """A walled room with textured floor and box obstacles ``(x, y, sx, sy, sz)``."""
+    """A walled room with textured floor and box obstacles ``(x, y, sx, sy, sz)``; ``floor_contrast`` 0
+    makes the floor (and ramp) featureless."""
     rng = np.random.default_rng(seed)
     planes: list[Plane] = []
     if ramp is None:
@@ -154,6 +157,8 @@ def make_room_scene(
             _rect([ramp.x0, -half_y, 0], [ramp.x1 - ramp.x0, 0, h], [0, 1, 0], L, 2 * half_y, rng, 0.95, facing=[ramp.x0, 0, 100])
         )
         planes.append(_rect([ramp.x1, -half_y, h], [1, 0, 0], [0, 1, 0], half_x - ramp.x1, 2 * half_y, rng, 1.0, facing=[0, 0, 100]))
+    for fp in planes:
+        fp.contrast = floor_contrast
     wb = 0.85
     planes.append(_rect([-half_x, -half_y, -1], [1, 0, 0], [0, 0, 1], 2 * half_x, wall_h + 1, rng, wb, facing=[0, 0, 1]))
     planes.append(_rect([half_x, half_y, -1], [-1, 0, 0], [0, 0, 1], 2 * half_x, wall_h + 1, rng, wb, facing=[0, 0, 1]))
@@ -410,6 +415,7 @@ class Renderer:
         t_tex = np.zeros((H, W), np.float32)
         cosb = np.ones((H, W), np.float32)
         bright = np.zeros((H, W), np.float32)
+        contrast = np.ones((H, W), np.float32)
         for p in planes:
             n = p.normal
             num = float(np.dot(p.origin - cam_o, n))
@@ -439,12 +445,14 @@ class Renderer:
             t_tex[rs, cs][ok] = (v[ok] + p.tex_offset[1]) / TEXEL_M
             cosb[rs, cs][ok] = np.abs(dn[ok]) / np.linalg.norm(rays[ok], axis=1)
             bright[rs, cs][ok] = p.brightness
+            contrast[rs, cs][ok] = p.contrast
         tbuf[~self.valid] = np.inf
         hit = np.isfinite(tbuf)
         range_m = tbuf * self.ray_len  # ray parameter -> metres along the ray
         footprint = np.where(hit, range_m, 1.0) * self.base_footprint / np.sqrt(np.maximum(cosb, 0.05))
         level = np.clip(np.log2(np.maximum(footprint / TEXEL_M, 1e-6)), 0.0, MIP_LEVELS - 1.001).astype(np.float32)
         img = self.atlas.sample(s_tex.ravel(), t_tex.ravel(), level.ravel(), self.shape)
+        img = 0.5 + (img - 0.5) * contrast
         img *= bright
         img[~hit] = 0.05
         img *= gain

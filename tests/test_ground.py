@@ -1,0 +1,179 @@
+"""Metric-scale pieces on their own: robust thresholds, the calibrated wheel and ground factors
+(their Jacobians against numerical derivatives), floor detection, and the calibration key lifecycle."""
+
+import gtsam
+import numpy as np
+import pytest
+
+from windowvo.backend import factors as fac
+from windowvo.backend.factors import C, L, X
+from windowvo.backend.ground import fit_floor_plane, floor_mask
+from windowvo.backend.smoother import SlidingWindowBackend, WheelCalibration
+from windowvo.config import BackendConfig, GroundConfig
+from windowvo.geometry import make_T, rpy_to_R
+from windowvo.synth.features import simulate_features
+from windowvo.synth.generate import SynthSpec, WheelErrorModel
+from windowvo.synth.paths import PathKind
+from windowvo.types import OdometryStep
+
+
+def test_robust_thresholds_are_chi_square_quantiles():
+    # Known quantiles of the chi-square distribution at 95 %: 3.841 (1 dof), 5.991 (2), 7.815 (3).
+    assert fac.robust_threshold(1, 0.95) == pytest.approx(np.sqrt(3.8415), abs=1e-3)
+    assert fac.robust_threshold(2, 0.95) == pytest.approx(np.sqrt(5.9915), abs=1e-3)
+    assert fac.robust_threshold(3, 0.95) == pytest.approx(np.sqrt(7.8147), abs=1e-3)
+    cfg = BackendConfig()
+    assert fac.threshold(None, 2, cfg) == pytest.approx(2.4477, abs=1e-3)
+    assert fac.threshold(1.345, 2, cfg) == 1.345  # an explicit threshold wins
+
+
+def _numerical_jacobians(factor, values: gtsam.Values, eps: float = 1e-6) -> list[np.ndarray]:
+    out = []
+    for key in factor.keys():
+        dims = 6 if values.exists(key) and key in (X(0), X(1)) else None
+        if dims is None:
+            dims = 2 if gtsam.Symbol(key).chr() == ord("c") else 3
+        cols = []
+        for i in range(dims):
+            d = np.zeros(dims)
+            d[i] = eps
+            vp, vm = gtsam.Values(values), gtsam.Values(values)
+            if dims == 6:
+                vp.update(key, values.atPose3(key).retract(d))
+                vm.update(key, values.atPose3(key).retract(-d))
+            elif dims == 3:
+                vp.update(key, values.atPoint3(key) + d)
+                vm.update(key, values.atPoint3(key) - d)
+            else:
+                vp.update(key, values.atPoint2(key) + d)
+                vm.update(key, values.atPoint2(key) - d)
+            cols.append((factor.unwhitenedError(vp) - factor.unwhitenedError(vm)) / (2 * eps))
+        out.append(np.stack(cols, axis=1))
+    return out
+
+
+def _analytic_jacobians(factor, values: gtsam.Values) -> list[np.ndarray]:
+    lin = factor.linearize(values)
+    A, _ = lin.jacobian()
+    sigmas = factor.noiseModel().sigmas() if hasattr(factor.noiseModel(), "sigmas") else None
+    out, col = [], 0
+    for key in factor.keys():
+        d = values.atPose3(key).localCoordinates(values.atPose3(key)).size if gtsam.Symbol(key).chr() == ord("x") else (
+            2 if gtsam.Symbol(key).chr() == ord("c") else 3)
+        block = A[:, col:col + d]
+        out.append(block * sigmas[:, None] if sigmas is not None else block)
+        col += d
+    return out
+
+
+def _values(c=(1.02, 0.01)):
+    v = gtsam.Values()
+    v.insert(X(0), gtsam.Pose3(make_T(rpy_to_R(0.02, -0.03, 0.4), [1.0, 2.0, 0.05])))
+    v.insert(X(1), gtsam.Pose3(make_T(rpy_to_R(-0.01, 0.02, 0.7), [1.5, 2.4, 0.02])))
+    v.insert(C(1), np.array(c))
+    v.insert(L(7), np.array([3.0, 2.5, 0.03]))
+    return v
+
+
+def test_calibrated_wheel_factor_residual_and_jacobians():
+    cfg = BackendConfig(odometry={"robust": "none"})
+    v = _values()
+    D = v.atPose3(X(0)).between(v.atPose3(X(1))).matrix()
+    yaw = np.arctan2(D[1, 0], D[0, 0])
+    dist = float(np.hypot(D[0, 3], D[1, 3]))
+    # Wheels that over-report distance by 2 % and add 0.01 rad of yaw per metre: zero residual at c = (1.02, 0.01).
+    meas = make_T(rpy_to_R(0, 0, yaw + 0.01 * dist), [1.02 * D[0, 3], 1.02 * D[1, 3], 0.0])
+    f = [g for g in fac.odometry_factors(cfg, 1, meas, dist, calibrate=True) if isinstance(g, gtsam.CustomFactor)][0]
+    assert np.abs(f.unwhitenedError(v)).max() < 1e-9
+    v_wrong = _values(c=(1.0, 0.0))
+    err = f.unwhitenedError(v_wrong)
+    assert abs(err[1]) > 0.005 and abs(err[0]) > 0.004  # it measures the calibration
+    for Ha, Hn in zip(_analytic_jacobians(f, v_wrong), _numerical_jacobians(f, v_wrong)):
+        assert np.allclose(Ha, Hn, atol=1e-5), (Ha, Hn)
+
+
+def test_ground_factor_residual_and_jacobians():
+    cfg = BackendConfig(ground={"robust": "none"})
+    v = _values()
+    f = fac.ground_factor(X(1), L(7), np.array([0.0, 0.0, 1.0]), 0.0, 0.01, cfg)
+    p_base = v.atPose3(X(1)).transformTo(v.atPoint3(L(7)))
+    assert f.unwhitenedError(v)[0] == pytest.approx(p_base[2], abs=1e-12)
+    for Ha, Hn in zip(_analytic_jacobians(f, v), _numerical_jacobians(f, v)):
+        assert np.allclose(Ha, Hn, atol=1e-5), (Ha, Hn)
+
+
+def _scene_points(rng, n_floor=80, ramp=False):
+    """Points in a base frame with the camera at (0.25, 0, 0.45): floor, a wall and a box top."""
+    x = rng.uniform(0.6, 5.0, n_floor)
+    y = rng.uniform(-2.0, 2.0, n_floor)
+    z = np.where(ramp & (x > 2.5), (x - 2.5) * np.tan(np.radians(15)), 0.0) + rng.normal(0, 0.004, n_floor)
+    floor = np.stack([x, y, z], axis=1)
+    wall = np.stack([np.full(40, 6.0), rng.uniform(-3, 3, 40), rng.uniform(0.0, 2.5, 40)], axis=1)
+    box_top = np.stack([rng.uniform(2.0, 2.6, 15), rng.uniform(-0.5, 0.5, 15), np.full(15, 0.3)], axis=1)
+    return floor, np.concatenate([floor, wall, box_top])
+
+
+def test_floor_detection_finds_the_floor_and_nothing_else():
+    rng = np.random.default_rng(0)
+    floor, pts = _scene_points(rng)
+    T_base_cam = make_T(np.eye(3), [0.25, 0.0, 0.45])
+    T_world_base = make_T(rpy_to_R(0, 0, 0.8), [3.0, -1.0, 0.0])
+    p_world = pts @ T_world_base[:3, :3].T + T_world_base[:3, 3]
+    mask, fit = floor_mask(p_world, T_world_base, T_base_cam, 0.45, GroundConfig(), rng)
+    assert fit is not None and fit.tilt_deg < 1.0 and fit.camera_height_m == pytest.approx(0.45, abs=0.01)
+    n = len(floor)
+    assert mask[n:].sum() == 0  # no wall or box point
+    # floor points within range and below the horizon by 8 deg are found (the far ones are not candidates)
+    near = np.degrees(np.arctan2(0.45, np.hypot(floor[:, 0] - 0.25, floor[:, 1]))) >= 8.5
+    assert mask[:n][near].mean() > 0.95
+
+
+def test_floor_detection_switches_off_where_the_floor_assumption_breaks():
+    rng = np.random.default_rng(1)
+    T_base_cam = make_T(np.eye(3), [0.25, 0.0, 0.45])
+    floor, pts = _scene_points(rng)
+    # the estimate's scale is 40 % off (distances from the camera 1.4x too long): the plane is not at the
+    # camera's height, so no floor
+    cam = T_base_cam[:3, 3]
+    mask, fit = floor_mask(cam + 1.4 * (pts - cam), np.eye(4), T_base_cam, 0.45, GroundConfig(), rng)
+    assert fit is None and not mask.any()
+    # a featureless floor: too few points
+    mask, fit = floor_mask(pts[-60:], np.eye(4), T_base_cam, 0.45, GroundConfig(), rng)
+    assert fit is None
+    # a ramp ahead: only the flat part is floor
+    floor, pts = _scene_points(rng, ramp=True)
+    mask, fit = floor_mask(pts, np.eye(4), T_base_cam, 0.45, GroundConfig(), rng)
+    on_ramp = floor[:, 0] > 2.8
+    assert fit is not None and not mask[: len(floor)][on_ramp].any()
+    # a camera that sees no floor
+    assert fit_floor_plane(np.zeros((0, 3)), np.zeros(3), 0.45, GroundConfig(), rng) is None
+
+
+def test_wheel_calibration_correct_removes_scale_and_bias():
+    T_true = make_T(rpy_to_R(0, 0, 0.1), [0.5, 0.02, 0.0])
+    d = float(np.hypot(0.5, 0.02))
+    meas = make_T(rpy_to_R(0, 0, 0.1 + 0.01 * d), [0.5 * 1.03, 0.02 * 1.03, 0.0])
+    assert np.allclose(WheelCalibration(1.03, 0.01).correct(meas, d), T_true, atol=1e-9)
+
+
+def test_calibration_states_survive_odometry_gaps_and_marginalisation():
+    """C(k) joins every keyframe (random walk), with or without a wheel reading, so odometry gaps and
+    the fixed lag never leave a key without factors (the GTSAM fixed-lag traps)."""
+    spec = SynthSpec(path=PathKind.LOOP, duration_s=40.0, speed=0.8, seed=4,
+                     wheel=WheelErrorModel(scale_error=0.02, yaw_bias_per_m=0.01))
+    fs = simulate_features(spec)
+    be = SlidingWindowBackend(fs.world.camera, BackendConfig(window_keyframes=8), use_odometry=True)
+    for i, fo in enumerate(fs.keyframes):
+        odom = None
+        if i > 0:
+            t0, t1 = fs.keyframes[i - 1].timestamp, fo.timestamp
+            odom = OdometryStep(fs.odometry.delta(t0, t1), fs.odometry.distance(t0, t1), ok=not (20 <= i < 24))
+        be.add_keyframe(fo, odom)
+    assert be.n_resets == 0
+    keys = [gtsam.Symbol(k) for k in be.smoother.timestamps()]
+    n_cal = sum(1 for s in keys if chr(s.chr()) == "c")
+    assert n_cal == 8  # one per keyframe in the window, older ones marginalised
+    cal = be.calibration_with_sigma()
+    # vision sees rotation, so the yaw bias is observable even without a metric floor cue
+    assert cal.yaw_bias_per_m == pytest.approx(0.01, abs=0.003)
+    assert 0 < cal.yaw_bias_sigma < 0.01

@@ -1,0 +1,258 @@
+"""Factor builders of the back end: one small function per factor, one concern each.
+
+Pure functions: they take measurements, keys and noise settings and return GTSAM factors;
+they never touch the smoother. Keys: ``X(k)`` is ``T_world_base`` of keyframe k (``Pose3``),
+``L(id)`` the world position of the landmark of track ``id`` (``Point3``), ``C(k)`` the wheel
+calibration at keyframe k (``Point2``: distance scale, yaw bias in rad per metre).
+
+Robust losses: GTSAM applies an M-estimator to the norm of the whitened residual, whose
+square is chi-square distributed with the factor's dimension. :func:`robust_threshold` turns a
+confidence (``backend.robust_confidence``) into the threshold for a factor of dimension d,
+so a 2-D pixel, a 3-D planar odometry and a 1-D ground residual are judged alike.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache, partial
+
+import gtsam
+import numpy as np
+from scipy.stats import chi2
+
+from ..config import BackendConfig, RobustKind
+
+# A sigma that leaves a component of a Pose3 factor effectively free.
+FREE_SIGMA = 1e3
+# Yaw uncertainty added per radian of turn in one odometry step (wheel geometry errors grow with turning).
+YAW_SIGMA_PER_RAD = 0.02
+
+
+def X(k: int) -> int:
+    """Key of ``T_world_base`` of keyframe k."""
+    return gtsam.symbol("x", k)
+
+
+def L(track_id: int) -> int:
+    """Key of ``p_world_landmark`` of track ``track_id``."""
+    return gtsam.symbol("l", track_id)
+
+
+def C(k: int) -> int:
+    """Key of the wheel calibration (scale, yaw bias per metre) at keyframe k."""
+    return gtsam.symbol("c", k)
+
+
+# ---------------------------------------------------------------------------- robust losses
+
+
+@lru_cache(maxsize=64)
+def robust_threshold(dim: int, confidence: float) -> float:
+    """Threshold (in sigmas of the whitened residual norm) below which a residual of dimension
+    ``dim`` is an inlier with probability ``confidence``: sqrt of the chi-square quantile."""
+    return float(np.sqrt(chi2.ppf(confidence, dim)))
+
+
+def robust(base, kind: RobustKind, k: float):
+    """Wrap a Gaussian noise model in an M-estimator with threshold k (in sigmas)."""
+    if kind is RobustKind.HUBER:
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
+    if kind is RobustKind.CAUCHY:
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(k), base)
+    return base
+
+
+def threshold(explicit: float | None, dim: int, cfg: BackendConfig) -> float:
+    """An explicitly configured threshold wins; otherwise the chi-square one for ``dim``."""
+    return float(explicit) if explicit is not None else robust_threshold(dim, cfg.robust_confidence)
+
+
+# ---------------------------------------------------------------------------- priors
+
+
+def first_pose_prior(key: int, T_world_base: np.ndarray, sigma: float = 1e-4):
+    """Fixes the gauge: the first pose (or the pose a reset restarts from)."""
+    return gtsam.PriorFactorPose3(key, gtsam.Pose3(T_world_base), gtsam.noiseModel.Isotropic.Sigma(6, sigma))
+
+
+def reset_prior(key: int, T_world_base: np.ndarray, cfg: BackendConfig):
+    """Holds the last good pose when the window restarts after a failure."""
+    r = cfg.reset_prior
+    sig = np.array([r.rotation_sigma_rad] * 3 + [r.position_sigma_m] * 3)
+    return gtsam.PriorFactorPose3(key, gtsam.Pose3(T_world_base), gtsam.noiseModel.Diagonal.Sigmas(sig))
+
+
+def landmark_birth_prior(key: int, p_world_landmark: np.ndarray, depth_m: float):
+    """A weak prior (sigma about the depth) that keeps a landmark determined if its projection
+    factors lose their Jacobians (point behind a camera) or are removed as outliers."""
+    return gtsam.PriorFactorPoint3(key, p_world_landmark, gtsam.noiseModel.Isotropic.Sigma(3, max(1.0, depth_m)))
+
+
+# ---------------------------------------------------------------------------- vision
+
+
+def pixel_noise(cfg: BackendConfig):
+    return robust(gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma), cfg.robust, threshold(cfg.huber_k, 2, cfg))
+
+
+def projection_factor(uv: np.ndarray, pose_key: int, landmark_key: int, noise, K: gtsam.Cal3_S2,
+                      body_P_sensor: gtsam.Pose3):
+    """Reprojection of a landmark into the camera of a keyframe (undistorted pixels, pinhole K)."""
+    return gtsam.GenericProjectionFactorCal3_S2(np.asarray(uv, float), noise, pose_key, landmark_key, K, body_P_sensor)
+
+
+# ---------------------------------------------------------------------------- planar motion
+
+
+def planar_attitude_factor(key: int, cfg: BackendConfig):
+    """Soft, robust roll/pitch prior: the base's z axis points up (yaw and position free)."""
+    pp = cfg.planar_prior
+    base = gtsam.noiseModel.Isotropic.Sigma(2, pp.sigma_rad)
+    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(pp.huber_k), base)
+    up = gtsam.Unit3(np.array([0.0, 0.0, 1.0]))
+    return gtsam.AttitudeFactorPose3(key, up, noise, up)
+
+
+def height_prior_factor(key: int, T_guess: np.ndarray, sigma_m: float):
+    """Optional soft z = 0 prior on a pose (every other component free)."""
+    sig = np.array([FREE_SIGMA] * 5 + [sigma_m])
+    prior = gtsam.Pose3(gtsam.Rot3(T_guess[:3, :3]), np.array([T_guess[0, 3], T_guess[1, 3], 0.0]))
+    return gtsam.PriorFactorPose3(key, prior, gtsam.noiseModel.Diagonal.Sigmas(sig))
+
+
+# ---------------------------------------------------------------------------- wheel odometry
+
+
+def _yaw_and_jacobian(R: np.ndarray) -> tuple[float, np.ndarray]:
+    """Yaw of R and its derivative with respect to a right perturbation R Exp(w) (3 columns)."""
+    yaw = float(np.arctan2(R[1, 0], R[0, 0]))
+    n = R[0, 0] ** 2 + R[1, 0] ** 2
+    # d(R Exp(w))_{i0} = R_i1 w3 - R_i2 w2
+    dR00 = np.array([0.0, -R[0, 2], R[0, 1]])
+    dR10 = np.array([0.0, -R[1, 2], R[1, 1]])
+    return yaw, (R[0, 0] * dR10 - R[1, 0] * dR00) / max(n, 1e-12)
+
+
+def _wrap(a: float) -> float:
+    return float((a + np.pi) % (2.0 * np.pi) - np.pi)
+
+
+def _calibrated_wheel_error(meas: np.ndarray, distance: float, this: gtsam.CustomFactor, values: gtsam.Values,
+                            H: list | None) -> np.ndarray:
+    """Residual [yaw, x, y] of a wheel step under a calibration c = (scale, yaw bias per metre).
+
+    The wheels report a planar step ``meas = (x, y, yaw)`` in the base frame of the earlier
+    keyframe. With the motion ``D = X(k-1)^-1 X(k)`` they should report ``scale * (D.x, D.y)``
+    and ``D.yaw + bias * distance``.
+    """
+    k0, k1, kc = this.keys()
+    H1 = np.zeros((6, 6), order="F")
+    H2 = np.zeros((6, 6), order="F")
+    D = values.atPose3(k0).between(values.atPose3(k1), H1, H2)
+    c = values.atPoint2(kc)
+    s, b = float(c[0]), float(c[1])
+    Dm = D.matrix()
+    R, t = Dm[:3, :3], Dm[:3, 3]
+    yaw, dyaw_dw = _yaw_and_jacobian(R)
+    err = np.array([_wrap(yaw + b * distance - meas[2]), s * t[0] - meas[0], s * t[1] - meas[1]])
+    if H is not None:
+        # d(residual)/d(local perturbation of D): yaw depends on the rotation part, x and y on the
+        # translation part through R (GTSAM's Pose3 tangent is [w, v] with t' = t + R v).
+        J_D = np.zeros((3, 6))
+        J_D[0, :3] = dyaw_dw
+        J_D[1, 3:] = s * R[0, :]
+        J_D[2, 3:] = s * R[1, :]
+        H[0] = J_D @ H1
+        H[1] = J_D @ H2
+        H[2] = np.array([[0.0, distance], [t[0], 0.0], [t[1], 0.0]])
+    return err
+
+
+def planar_odometry_sigmas(cfg: BackendConfig, distance: float, yaw: float) -> tuple[float, float]:
+    """Sigmas (x/y in metres, yaw in radians) of one wheel step: they grow with distance and turn."""
+    o = cfg.odometry
+    s_xy = max(o.xy_sigma_min_m, o.xy_sigma_per_m * distance)
+    s_yaw = max(o.yaw_sigma_min_rad, o.yaw_sigma_per_m * distance + YAW_SIGMA_PER_RAD * abs(yaw))
+    return s_xy, s_yaw
+
+
+def odometry_factors(cfg: BackendConfig, k: int, T_prev_cur: np.ndarray, distance: float, calibrate: bool) -> list:
+    """Wheel odometry between keyframes k-1 and k, as two parts of one measurement.
+
+    The planar part (x, y, yaw) is what wheels measure: tight, growing with distance, under the
+    configured robust loss so that vision can overrule slip; with ``calibrate`` it goes through
+    the calibration state ``C(k)`` (a 3-D custom factor), else a plain between-factor. The vertical
+    part (z, roll, pitch) only says "the robot drives on its wheels": loose and Gaussian, so it
+    keeps linking the window where vision is briefly lost (a robust loss would let that link go).
+    """
+    o = cfg.odometry
+    yaw = float(np.arctan2(T_prev_cur[1, 0], T_prev_cur[0, 0]))
+    s_xy, s_yaw = planar_odometry_sigmas(cfg, distance, yaw)
+    k_planar = threshold(o.robust_k, 3, cfg)
+    meas = gtsam.Pose3(T_prev_cur)
+    vertical = gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([o.roll_pitch_sigma_rad, o.roll_pitch_sigma_rad, FREE_SIGMA, FREE_SIGMA, FREE_SIGMA, o.z_sigma_m]))
+    out = [gtsam.BetweenFactorPose3(X(k - 1), X(k), meas, vertical)]
+    if calibrate:
+        noise = robust(gtsam.noiseModel.Diagonal.Sigmas(np.array([s_yaw, s_xy, s_xy])), o.robust, k_planar)
+        m = np.array([T_prev_cur[0, 3], T_prev_cur[1, 3], yaw])
+        out.append(gtsam.CustomFactor(noise, [X(k - 1), X(k), C(k)],
+                                      partial(_calibrated_wheel_error, m, float(distance))))
+    else:
+        planar = gtsam.noiseModel.Diagonal.Sigmas(np.array([FREE_SIGMA, FREE_SIGMA, s_yaw, s_xy, s_xy, FREE_SIGMA]))
+        out.append(gtsam.BetweenFactorPose3(X(k - 1), X(k), meas, robust(planar, o.robust, k_planar)))
+    return out
+
+
+def calibration_prior(k: int, scale: float, yaw_bias: float, scale_sigma: float, yaw_bias_sigma: float):
+    """Prior on the wheel calibration: the initial belief, or what a reset carries over."""
+    return gtsam.PriorFactorPoint2(C(k), np.array([scale, yaw_bias]),
+                                   gtsam.noiseModel.Diagonal.Sigmas(np.array([scale_sigma, yaw_bias_sigma])))
+
+
+def calibration_random_walk(cfg: BackendConfig, k: int, distance: float):
+    """The calibration drifts slowly: a random walk whose sigma grows with the square root of distance."""
+    wc = cfg.wheel_calibration
+    d = np.sqrt(max(distance, 1e-3))
+    sig = np.array([wc.scale_walk_per_sqrt_m * d, wc.yaw_bias_walk_per_sqrt_m * d])
+    return gtsam.BetweenFactorPoint2(C(k - 1), C(k), np.zeros(2), gtsam.noiseModel.Diagonal.Sigmas(sig))
+
+
+def monocular_motion_factor(k: int, T_prev_cur: np.ndarray, first_baseline: bool):
+    """Without wheels: the first step fixes the gauge of scale (its length, weakly), later steps
+    only carry a weak motion prior that keeps the system determined when vision is thin."""
+    sig = [0.1, 0.1, 0.1, 0.02, 0.02, 0.02] if first_baseline else [0.5, 0.5, 0.5, 5.0, 5.0, 5.0]
+    return gtsam.BetweenFactorPose3(X(k - 1), X(k), gtsam.Pose3(T_prev_cur),
+                                    gtsam.noiseModel.Diagonal.Sigmas(np.array(sig)))
+
+
+# ---------------------------------------------------------------------------- ground plane
+
+
+def _ground_error(normal: np.ndarray, floor_z: float, this: gtsam.CustomFactor, values: gtsam.Values,
+                  H: list | None) -> np.ndarray:
+    """Signed distance of a landmark from the floor plane of a keyframe's base frame: the plane through
+    the base's floor point (0, 0, floor_z) with unit normal ``normal`` (base frame)."""
+    kx, kl = this.keys()
+    Hp = np.zeros((3, 6), order="F")
+    Hq = np.zeros((3, 3), order="F")
+    p_base = values.atPose3(kx).transformTo(values.atPoint3(kl), Hp, Hq)
+    if H is not None:
+        H[0] = normal[None, :] @ Hp
+        H[1] = normal[None, :] @ Hq
+    return np.array([float(normal @ p_base) - normal[2] * floor_z])
+
+
+def ground_factor(pose_key: int, landmark_key: int, normal_base: np.ndarray, floor_z: float, sigma_m: float,
+                  cfg: BackendConfig):
+    """Ties a floor landmark to the ground plane of the keyframe that observes it.
+
+    The base origin lies on the floor (at height ``floor_z`` below it when the configured camera
+    height differs from ``T_base_cam``), so a floor point lies on the plane through it with the
+    floor's normal. The normal comes from the plane fitted to the floor points in the base frame:
+    it absorbs the chassis rocking on its suspension (scale-free), while the plane's offset, fixed by
+    the camera at its known height, makes metric scale observable. Robust, chi-square threshold of 1-D.
+    """
+    g = cfg.ground
+    noise = robust(gtsam.noiseModel.Isotropic.Sigma(1, sigma_m), g.robust, threshold(g.robust_k, 1, cfg))
+    n = np.asarray(normal_base, float) / np.linalg.norm(normal_base)
+    return gtsam.CustomFactor(noise, [pose_key, landmark_key], partial(_ground_error, n, float(floor_z)))

@@ -1,0 +1,123 @@
+"""The ground-plane cue: which landmarks lie on the floor, and the metric scale it implies.
+
+A ground robot's camera sits at a known height above the floor (``T_base_cam``, base origin on
+the floor), and the floor is in view. Landmarks below the horizon of the base frame, close
+enough, are candidates; a plane fitted to them with RANSAC in the base frame of the newest
+keyframe is accepted only when it is nearly level and lies near the expected height
+(within ``ground.height_tolerance``). Its inliers are floor landmarks: the window ties them to
+the ground plane with a factor (``factors.ground_factor``). Where the assumption breaks (a
+ramp ahead, boxes, a floor without texture, a camera that does not see the floor) no plane
+passes these checks, and the cue switches itself off for that keyframe.
+
+Pure numpy: no GTSAM here, so the detector is tested on its own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import GroundConfig
+
+RANSAC_ITERATIONS = 60
+
+
+@dataclass
+class PlaneFit:
+    """Plane ``n . p = -d`` in the base frame (n unit, pointing up), with its inliers."""
+
+    normal: np.ndarray  # (3,)
+    offset: float  # d: the plane is n.p + d = 0
+    inliers: np.ndarray  # bool mask over the points it was fitted to
+    tilt_deg: float  # angle between n and the base z axis
+    camera_height_m: float  # distance of the camera above the plane (in the estimate's scale)
+
+
+def floor_candidates(p_base: np.ndarray, cam_in_base: np.ndarray, camera_height_m: float,
+                     cfg: GroundConfig) -> np.ndarray:
+    """Mask of points below the horizon by at least ``min_depression_deg`` and within range."""
+    if len(p_base) == 0:
+        return np.zeros(0, bool)
+    rel = p_base - cam_in_base
+    horiz = np.hypot(rel[:, 0], rel[:, 1])
+    depression = np.degrees(np.arctan2(-rel[:, 2], np.maximum(horiz, 1e-9)))
+    return (depression >= cfg.min_depression_deg) & (horiz <= cfg.max_range_heights * camera_height_m) & (
+        rel[:, 0] > 0.0)
+
+
+def _inlier_threshold(p_base: np.ndarray, cam_in_base: np.ndarray, camera_height_m: float,
+                      cfg: GroundConfig) -> np.ndarray:
+    """Per point: a share of the camera height plus a share of the range (depth noise grows with it)."""
+    horiz = np.hypot(p_base[:, 0] - cam_in_base[0], p_base[:, 1] - cam_in_base[1])
+    return cfg.inlier_height_fraction * camera_height_m + cfg.inlier_range_fraction * horiz
+
+
+def fit_floor_plane(p_base: np.ndarray, cam_in_base: np.ndarray, camera_height_m: float, cfg: GroundConfig,
+                    rng: np.random.Generator, metric_scale_known: bool = True) -> PlaneFit | None:
+    """RANSAC plane through floor candidates (base frame), or None if no plane passes the checks.
+
+    With ``metric_scale_known`` the plane must also lie within ``height_tolerance`` of the known
+    camera height; without (monocular start) any height is accepted: it then fixes the scale.
+    """
+    n_pts = len(p_base)
+    if n_pts < cfg.min_points:
+        return None
+    best_inl, best_count = None, 0
+    thr = _inlier_threshold(p_base, cam_in_base, camera_height_m if metric_scale_known else 1.0, cfg)
+    for _ in range(RANSAC_ITERATIONS):
+        i = rng.choice(n_pts, 3, replace=False)
+        a, b, c = p_base[i]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n)
+        if norm < 1e-9:
+            continue
+        n = n / norm
+        if n[2] < 0:
+            n = -n
+        if np.degrees(np.arccos(np.clip(n[2], -1.0, 1.0))) > cfg.max_tilt_deg:
+            continue
+        dist = np.abs((p_base - a) @ n)
+        scale = 1.0 if metric_scale_known else max(float(n @ (cam_in_base - a)), 1e-6)
+        inl = dist <= thr * scale
+        cnt = int(inl.sum())
+        if cnt > best_count:
+            best_inl, best_count = inl, cnt
+    if best_inl is None or best_count < cfg.min_points:
+        return None
+    # Least-squares refit on the inliers (smallest singular vector of the centred points).
+    P = p_base[best_inl]
+    centre = P.mean(axis=0)
+    _, _, vt = np.linalg.svd(P - centre)
+    n = vt[2] if vt[2, 2] >= 0 else -vt[2]
+    d = -float(n @ centre)
+    tilt = float(np.degrees(np.arccos(np.clip(n[2], -1.0, 1.0))))
+    height = float(n @ cam_in_base + d)
+    if tilt > cfg.max_tilt_deg or height <= 0:
+        return None
+    if metric_scale_known and abs(height / camera_height_m - 1.0) > cfg.height_tolerance:
+        return None
+    scale = 1.0 if metric_scale_known else height
+    inliers = np.abs(p_base @ n + d) <= thr * scale
+    if int(inliers.sum()) < cfg.min_points:
+        return None
+    return PlaneFit(n, d, inliers, tilt, height)
+
+
+def floor_mask(p_world: np.ndarray, T_world_base: np.ndarray, T_base_cam: np.ndarray, camera_height_m: float,
+               cfg: GroundConfig, rng: np.random.Generator, metric_scale_known: bool = True
+               ) -> tuple[np.ndarray, PlaneFit | None]:
+    """Which world points lie on the floor seen from a keyframe; all False when no floor plane passes."""
+    mask = np.zeros(len(p_world), bool)
+    if len(p_world) == 0:
+        return mask, None
+    R, t = T_world_base[:3, :3], T_world_base[:3, 3]
+    p_base = (np.asarray(p_world) - t) @ R
+    cam = T_base_cam[:3, 3]
+    cand = floor_candidates(p_base, cam, camera_height_m, cfg)
+    fit = fit_floor_plane(p_base[cand], cam, camera_height_m, cfg, rng, metric_scale_known)
+    if fit is None:
+        return mask, None
+    idx = np.nonzero(cand)[0]
+    mask[idx[fit.inliers]] = True
+    return mask, fit

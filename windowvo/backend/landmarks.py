@@ -1,0 +1,263 @@
+"""Landmark manager of the back end: observations, triangulation, lifecycle and outliers.
+
+A track's observations are collected per keyframe until enough keyframes have seen it; then it
+is triangulated (midpoint over the window, with angle, depth and reprojection checks) and becomes
+a landmark ``L(id)`` in the smoother. A landmark lives while keyframes in the window see it,
+is dropped as an outlier when its reprojection error stays large, and is forgotten once the
+smoother marginalises the last keyframe that saw it. This module never calls the smoother: it
+decides which landmarks and factors to add or remove, and the window (``smoother.py``) submits them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import gtsam
+import numpy as np
+
+from ..camera import CameraModel
+from ..config import BackendConfig
+from ..geometry import inv_T
+from .factors import L
+
+# Minimum correspondences for PnP on the window's landmarks, and inliers to accept its pose.
+PNP_MIN_POINTS = 12
+PNP_MIN_INLIERS = 10
+# Points closer than this to a camera (m) count as behind it.
+MIN_DEPTH_M = 0.05
+# Reprojection errors above this are clamped in the RMS diagnostic (one gross outlier must not hide the rest).
+RMS_CLAMP_PX = 50.0
+# Dead track ids are only remembered while the front end may still report them.
+MAX_DEAD_IDS, KEEP_DEAD_IDS = 50_000, 20_000
+
+
+@dataclass
+class LandmarkState:
+    key: int
+    last_kf: int
+    factor_indices: list[tuple[int, int]] = field(default_factory=list)  # (keyframe, smoother factor index)
+    strikes: int = 0
+    on_ground: bool = False
+
+
+def reprojection_errors(camera: CameraModel, T_world_base: np.ndarray, T_base_cam: np.ndarray,
+                        p_world: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Pixel errors of world points (N,3) against undistorted pixels (N,2); inf behind the camera."""
+    if len(p_world) == 0:
+        return np.zeros(0)
+    T_cw = inv_T(T_world_base @ T_base_cam)
+    pc = np.asarray(p_world) @ T_cw[:3, :3].T + T_cw[:3, 3]
+    z = pc[:, 2]
+    safe = np.where(z > MIN_DEPTH_M, z, 1.0)
+    proj = np.stack([camera.fx * pc[:, 0] / safe + camera.cx, camera.fy * pc[:, 1] / safe + camera.cy], axis=1)
+    err = np.linalg.norm(proj - np.asarray(uv), axis=1)
+    return np.where(z > MIN_DEPTH_M, err, np.inf)
+
+
+def reprojection_rms(errors: np.ndarray) -> float:
+    if len(errors) == 0:
+        return float("nan")
+    return float(np.sqrt(np.mean(np.square(np.minimum(errors, RMS_CLAMP_PX)))))
+
+
+class LandmarkManager:
+    """Observations of tracks and the lifecycle of the landmarks made from them."""
+
+    def __init__(self, camera: CameraModel, cfg: BackendConfig):
+        self.camera = camera
+        self.cfg = cfg
+        self.T_base_cam = camera.T_base_cam
+        self._cos_min_angle = float(np.cos(np.radians(cfg.min_triangulation_angle_deg)))
+        self.obs: dict[int, list[tuple[int, np.ndarray]]] = {}  # track id -> [(k, undistorted px)]
+        self.landmarks: dict[int, LandmarkState] = {}
+        self.dead: set[int] = set()
+        self.pending_removal: list[int] = []  # smoother factor indices to remove at the next update
+
+    # ------------------------------------------------------------------ queries
+    def positions(self, estimate: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
+        """Track ids and world positions of the landmarks the estimate holds."""
+        ids, pts = [], []
+        for tid, lm in self.landmarks.items():
+            if estimate.exists(lm.key):
+                ids.append(tid)
+                pts.append(estimate.atPoint3(lm.key))
+        return np.asarray(ids, np.int64), np.asarray(pts, float).reshape(-1, 3)
+
+    def seen_now(self, fo_ids: np.ndarray, uv: np.ndarray, k: int, estimate: gtsam.Values
+                 ) -> tuple[list[int], np.ndarray, np.ndarray]:
+        """Landmarks observed at keyframe k: ids, world positions, undistorted pixels."""
+        ids, pts, pix = [], [], []
+        for tid, p in zip(fo_ids.tolist(), uv):
+            lm = self.landmarks.get(tid)
+            if lm is None or lm.last_kf != k or not estimate.exists(lm.key):
+                continue
+            ids.append(tid)
+            pts.append(estimate.atPoint3(lm.key))
+            pix.append(p)
+        return ids, np.asarray(pts, float).reshape(-1, 3), np.asarray(pix, float).reshape(-1, 2)
+
+    def pnp_pose(self, fo_ids: np.ndarray, uv: np.ndarray, estimate: gtsam.Values | None,
+                 pixel_sigma: float) -> np.ndarray | None:
+        """T_world_base from the window's landmarks seen in this frame (EPnP in RANSAC), or None."""
+        if estimate is None:
+            return None
+        pts3, pts2 = [], []
+        for tid, p in zip(fo_ids.tolist(), uv):
+            lm = self.landmarks.get(tid)
+            if lm is not None and estimate.exists(lm.key):
+                pts3.append(estimate.atPoint3(lm.key))
+                pts2.append(p)
+        if len(pts3) < PNP_MIN_POINTS:
+            return None
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            np.asarray(pts3, np.float64), np.asarray(pts2, np.float64), self.camera.K, None,
+            reprojectionError=2.0 * pixel_sigma + 1.0, iterationsCount=100, flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inl is None or len(inl) < PNP_MIN_INLIERS:
+            return None
+        R, _ = cv2.Rodrigues(rvec)
+        T_cam_world = np.eye(4)
+        T_cam_world[:3, :3] = R
+        T_cam_world[:3, 3] = tvec.ravel()
+        return inv_T(T_cam_world) @ inv_T(self.T_base_cam)
+
+    # ------------------------------------------------------------------ observations
+    def observe(self, fo_ids: np.ndarray, uv: np.ndarray, k: int, allow_new: bool
+                ) -> tuple[list[tuple[int, np.ndarray]], list[int]]:
+        """Sort this keyframe's tracks: observations of existing landmarks, and tracks ready to triangulate.
+
+        Returns ``(seen, candidates)``: (track id, pixel) of live landmarks (their timestamps must be
+        refreshed), and ids of tracks seen by enough keyframes, longest first.
+        """
+        seen: list[tuple[int, np.ndarray]] = []
+        candidates: list[int] = []
+        for tid, p in zip(fo_ids.tolist(), uv):
+            if tid in self.dead:
+                continue
+            lm = self.landmarks.get(tid)
+            if lm is not None:
+                lm.last_kf = k
+                seen.append((tid, p))
+                continue
+            lst = self.obs.setdefault(tid, [])
+            lst.append((k, np.asarray(p, float)))
+            if allow_new and len(lst) >= self.cfg.min_landmark_observations:
+                candidates.append(tid)
+        candidates.sort(key=lambda t: -len(self.obs[t]))
+        return seen, candidates
+
+    def budgets(self, max_floor: int) -> tuple[int, int]:
+        """Room left for new landmarks: (others, floor landmarks)."""
+        n_floor = sum(1 for lm in self.landmarks.values() if lm.on_ground)
+        return self.cfg.max_landmarks - (len(self.landmarks) - n_floor), max_floor - n_floor
+
+    # ------------------------------------------------------------------ triangulation
+    @staticmethod
+    def camera_poses(T_world_base: dict[int, np.ndarray], T_base_cam: np.ndarray
+                     ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """T_world_cam rotation and centre per keyframe, computed once per update."""
+        out = {}
+        for kk, T in T_world_base.items():
+            T_wc = T @ T_base_cam
+            out[kk] = (T_wc[:3, :3], T_wc[:3, 3])
+        return out
+
+    def triangulate(self, tid: int, cams: dict[int, tuple[np.ndarray, np.ndarray]]) -> np.ndarray | None:
+        """Midpoint triangulation of a track over the window, with angle, depth and reprojection checks."""
+        obs = [(kk, p) for kk, p in self.obs.get(tid, []) if kk in cams]
+        return triangulate_midpoint(self.camera, self.cfg, obs, cams, self._cos_min_angle)
+
+    def promote(self, tid: int, k: int, on_ground: bool) -> list[tuple[int, np.ndarray]]:
+        """Turn a triangulated track into a landmark; returns its stored observations."""
+        self.landmarks[tid] = LandmarkState(L(tid), k, on_ground=on_ground)
+        return self.obs.pop(tid)
+
+    def record_factors(self, owners: list[tuple[int, int] | None], indices: list[int]) -> None:
+        """Remember the smoother's index of each projection factor, per (track id, keyframe)."""
+        for fi, owner in zip(indices, owners):
+            if owner is not None and owner[0] in self.landmarks:
+                self.landmarks[owner[0]].factor_indices.append((owner[1], int(fi)))
+
+    def forget(self, tids: list[int]) -> None:
+        for tid in tids:
+            self.landmarks.pop(tid, None)
+            self.dead.add(tid)
+
+    # ------------------------------------------------------------------ lifecycle
+    def prune(self, window_start: int) -> None:
+        """Forget the bookkeeping of landmarks and observations the smoother has marginalised."""
+        self.forget([t for t, lm in self.landmarks.items() if lm.last_kf < window_start])
+        for tid in list(self.obs):
+            kept = [(kk, p) for kk, p in self.obs[tid] if kk >= window_start]
+            if kept:
+                self.obs[tid] = kept
+            else:
+                del self.obs[tid]
+        if len(self.dead) > MAX_DEAD_IDS:
+            self.dead = set(sorted(self.dead)[-KEEP_DEAD_IDS:])
+
+    def check_outliers(self, ids: list[int], errors: np.ndarray, next_window_start: int) -> None:
+        """Landmarks whose reprojection error stays large on two keyframes are dropped; their factors
+        on poses still in the window are removed at the next update."""
+        for tid, err in zip(ids, errors):
+            lm = self.landmarks.get(tid)
+            if lm is None:
+                continue
+            if err > self.cfg.outlier_residual_px:
+                lm.strikes += 1
+                if lm.strikes >= 2:
+                    self.pending_removal.extend(fi for kk, fi in lm.factor_indices if kk >= next_window_start)
+                    self.forget([tid])
+            else:
+                lm.strikes = 0
+
+    def take_removals(self) -> list[int]:
+        out, self.pending_removal = self.pending_removal, []
+        return out
+
+    def restart(self, k: int, fo_ids: np.ndarray, uv: np.ndarray) -> None:
+        """After a reset: every landmark is gone; this keyframe's observations seed new ones."""
+        self.dead.update(self.landmarks)
+        self.landmarks.clear()
+        self.obs.clear()
+        self.pending_removal = []
+        for tid, p in zip(fo_ids.tolist(), uv):
+            self.obs[tid] = [(k, np.asarray(p, float))]
+        self.dead.difference_update(fo_ids.tolist())
+
+
+def triangulate_midpoint(camera: CameraModel, cfg: BackendConfig, obs: list[tuple[int, np.ndarray]],
+                         cams: dict[int, tuple[np.ndarray, np.ndarray]], cos_min_angle: float) -> np.ndarray | None:
+    """Point closest to the rays of the observations (undistorted pixels), or None if it fails a check:
+    rays too parallel, behind or too far from a camera, or reprojecting badly."""
+    if len(obs) < 2:
+        return None
+    K = camera
+    # Cheap test first: the rays of the first and last observation must already diverge.
+    (k_a, uv_a), (k_b, uv_b) = obs[0], obs[-1]
+    ra = cams[k_a][0] @ np.array([(uv_a[0] - K.cx) / K.fx, (uv_a[1] - K.cy) / K.fy, 1.0])
+    rb = cams[k_b][0] @ np.array([(uv_b[0] - K.cx) / K.fx, (uv_b[1] - K.cy) / K.fy, 1.0])
+    if np.dot(ra, rb) / np.sqrt(np.dot(ra, ra) * np.dot(rb, rb)) > cos_min_angle:
+        return None
+    uv = np.asarray([o[1] for o in obs])
+    R = np.stack([cams[kk][0] for kk, _ in obs])  # (n, 3, 3) R_world_cam
+    c = np.stack([cams[kk][1] for kk, _ in obs])  # (n, 3) camera centres
+    rays_c = np.stack([(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy, np.ones(len(obs))], axis=1)
+    d = np.einsum("nij,nj->ni", R, rays_c)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    if np.degrees(np.arccos(np.clip(np.min(d @ d.T), -1, 1))) < cfg.min_triangulation_angle_deg:
+        return None
+    P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    A = P.sum(axis=0)
+    b = np.einsum("nij,nj->i", P, c)
+    if np.linalg.det(A) < 1e-9:
+        return None
+    p = np.linalg.solve(A, b)
+    pc = np.einsum("nji,nj->ni", R, p[None, :] - c)  # R^T (p - c)
+    z = pc[:, 2]
+    if np.any(z <= 0.1) or np.any(z > cfg.max_landmark_depth_m):
+        return None
+    proj = np.stack([K.fx * pc[:, 0] / z + K.cx, K.fy * pc[:, 1] / z + K.cy], axis=1)
+    if np.max(np.linalg.norm(proj - uv, axis=1)) > cfg.max_reprojection_px:
+        return None
+    return p
