@@ -79,8 +79,10 @@ def run_job(cfg: Config, progress=None) -> JobReport:
     finally:
         if result is None:  # an unexpected error: still write what we have
             try:
+                pipe._close_journal()
                 partial = RunResult(len(pipe.frames), len(pipe.kf_frames), 0, 0.0, pipe.assemble_trajectory(),
-                                    pipe.records, not pipe.use_odometry, interrupted=True)
+                                    pipe.records, not pipe.use_odometry, interrupted=True,
+                                    trajectory_online=pipe.vo.online_trajectory(), **pipe.vo.scale_report())
                 write_outputs(cfg, partial, cfg.output)
                 log.error("run failed after frame %d; partial results written to %s",
                           pipe.frames[-1][0] if pipe.frames else -1, cfg.output)

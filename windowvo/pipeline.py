@@ -1,7 +1,11 @@
-"""The pipeline: data provider -> front end -> back end -> outputs and viewer, sequentially.
+"""The file pipeline: data provider -> streaming odometry (``stream.Odometry``) -> outputs and viewer.
 
-Runs deterministically in one thread. Whatever happens (a failing frame, Ctrl-C, SIGTERM),
-the trajectory of every frame processed so far, ``stats.csv`` and the recording are written.
+Runs deterministically in one thread, through the same :class:`~windowvo.stream.Odometry` object a
+robot would call in its loop (wheel samples fed up to each frame's time, then the frame). Whatever
+happens (a failing frame, Ctrl-C, SIGTERM), the trajectory of every frame processed so far,
+``stats.csv`` and the recording are written; on a hard kill (SIGKILL, out of memory) the causal
+trajectory ``trajectory_online.txt``, appended and flushed at every keyframe, still holds every
+frame up to the last keyframe.
 """
 
 from __future__ import annotations
@@ -19,17 +23,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .backend.smoother import SlidingWindowBackend, WheelCalibration
+from .backend.smoother import WheelCalibration
 from .config import Config, save_config
 from .errors import SequenceError
-from .frontend.frontend import Frontend
-from .geometry import interpolate_T
 from .io.provider import DataProvider, SkippedFrame
 from .io.sequence import Sequence
-from .io.trajectory import Trajectory, write_tum
-from .types import BackendOutput, BackendStatus, FrameEstimate, FrameRecord, FrontendOutput, OdometryStep
+from .io.trajectory import Trajectory, TumJournal, write_tum
+from .stream import Odometry
+from .types import BackendOutput, FrameRecord, FrontendOutput
 
 log = logging.getLogger(__name__)
+
+ONLINE_HEADER = "windowvo causal estimate (each frame's pose as known at that frame's time)"
 
 
 @dataclass
@@ -69,45 +74,57 @@ def load_static_mask(path: Path | None, shape: tuple[int, int]) -> np.ndarray | 
 
 
 class Pipeline:
-    def __init__(self, cfg: Config, seq: Sequence, viewer=None, progress: Callable | None = None):
+    """Runs a sequence through the streaming odometry and collects what the outputs need."""
+
+    def __init__(self, cfg: Config, seq: Sequence, viewer=None, progress: Callable | None = None,
+                 journal: bool = True):
         self.cfg = cfg
         self.seq = seq
         self.viewer = viewer
         self.progress = progress
         cam = seq.camera
-        self.use_odometry = cfg.backend.use_odometry and seq.odometry is not None
-        self.frontend = Frontend(cam, cfg.frontend, cfg.keyframes, cfg.gates,
-                                 load_static_mask(cfg.frontend.mask, (cam.height, cam.width)))
-        self.backend = SlidingWindowBackend(cam, cfg.backend, self.use_odometry)
+        odo = seq.odometry
+        self.vo = Odometry(cam, cfg, use_wheels=odo is not None,
+                           static_mask=load_static_mask(cfg.frontend.mask, (cam.height, cam.width)),
+                           wheel_comment=odo.comment if odo is not None else "")
+        self.use_odometry = self.vo.use_odometry
+        self.frontend = self.vo.frontend
+        self.backend = self.vo.backend
         self.provider = DataProvider(seq, cfg.checks, cfg.max_frames, cfg.frontend.mask_folder)
-        # Per processed or skipped frame: (frame index, timestamp); keyframe poses by frame index.
-        self.frames: list[tuple[int, float]] = []
-        self.kf_frames: list[int] = []
-        self.kf_times: list[float] = []
+        self._wheel_next = 0  # next sample of seq.odometry to feed
         self.records: list[FrameRecord] = []
-        self.last_kf_time: float | None = None
-        self.last_kf_online: np.ndarray | None = None  # newest keyframe pose as estimated when it was added
-        self.online: list[np.ndarray] = []  # causal T_world_base per processed or skipped frame
-        self.notes: list[str] = []
+        self._journal = TumJournal(cfg.output / "trajectory_online.txt", ONLINE_HEADER + " (run in progress)") \
+            if journal else None
 
-    # ------------------------------------------------------------------ odometry helpers
-    def _odom_since_kf(self, t: float) -> tuple[float, float] | None:
-        odo = self.seq.odometry
-        if odo is None or self.last_kf_time is None:
-            return None
-        d = odo.delta(self.last_kf_time, t)
-        return float(np.hypot(d[0, 3], d[1, 3])), abs(float(np.arctan2(d[1, 0], d[0, 0])))
+    # The per-frame state lives in the streaming object; these views keep the pipeline's names.
+    @property
+    def frames(self) -> list[tuple[int, float]]:
+        return self.vo.frames
 
-    def _odom_step(self, t0: float, t1: float) -> OdometryStep | None:
+    @property
+    def kf_frames(self) -> list[int]:
+        return self.vo.kf_frames
+
+    @property
+    def online(self) -> list[np.ndarray]:
+        return self.vo.online
+
+    @property
+    def notes(self) -> list[str]:
+        return self.vo.notes
+
+    def assemble_trajectory(self) -> Trajectory:
+        return self.vo.smoothed_trajectory()
+
+    def _feed_wheels(self, t: float) -> None:
+        """Give the streaming object every wheel sample up to time t, as a robot's loop would."""
         odo = self.seq.odometry
-        if odo is None or not self.use_odometry:
-            return None
-        ok = odo.covers(t0) and odo.covers(t1) and odo.max_gap_in(t0, t1) <= self.cfg.backend.odometry.max_gap_s
-        if not ok:
-            msg = f"odometry missing or stale between t={t0:.3f} and t={t1:.3f} s; vision only for that step"
-            log.warning(msg)
-            self.notes.append(msg)
-        return OdometryStep(odo.delta(t0, t1), odo.distance(t0, t1), ok)
+        if odo is None:
+            return
+        end = int(np.searchsorted(odo.timestamps, t, side="right"))
+        for i in range(self._wheel_next, end):
+            self.vo.add_wheel_odometry(float(odo.timestamps[i]), float(odo.x[i]), float(odo.y[i]), float(odo.yaw[i]))
+        self._wheel_next = max(self._wheel_next, end)
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> RunResult:
@@ -145,7 +162,8 @@ class Pipeline:
             last = self.frames[-1][0] if self.frames else -1
             log.warning("interrupted after frame %d: writing the results so far", last)
         wall = time.perf_counter() - t_start
-        traj = self.assemble_trajectory()
+        traj = self.vo.smoothed_trajectory()
+        self._close_journal()
         return RunResult(
             n_frames=len(self.frames),
             n_keyframes=len(self.kf_frames),
@@ -160,58 +178,34 @@ class Pipeline:
             n_resets=self.backend.n_resets,
             notes=self.notes,
             last_frame_index=self.frames[-1][0] if self.frames else -1,
-            **self.scale_report(),
-            trajectory_online=self.online_trajectory(),
+            **self.vo.scale_report(),
+            trajectory_online=self.vo.online_trajectory(),
         )
 
     def _step(self, item, is_last: bool) -> None:
-        t_in = time.perf_counter()
+        self._feed_wheels(item.timestamp)
         if isinstance(item, SkippedFrame):
             log.warning("skipping %s", item.reason)
-            note = f"skipped: {item.reason}"
-            self.frames.append((item.index, item.timestamp))
-            self.online.append(self._online_pose(item.timestamp))
+            est = self.vo.skip(item.index, item.timestamp, item.reason)
             self.records.append(FrameRecord(item.index, item.timestamp, 0, 0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, False,
-                                            "", "", "", 0, float("nan"), 0.0, 0.0, note=note))
-            return
-        frame = item
-        fo = self.frontend.process(frame, self._odom_since_kf(frame.timestamp), force_keyframe=is_last)
-        bo: BackendOutput | None = None
-        note = ""
-        if fo.is_keyframe:
-            odom = None
-            if self.last_kf_time is not None:
-                odom = self._odom_step(self.last_kf_time, frame.timestamp)
-            if odom is not None and not odom.ok:
-                note = "odometry gap: vision only"
-            bo = self.backend.add_keyframe(fo, odom)
-            self.kf_frames.append(frame.index)
-            self.kf_times.append(frame.timestamp)
-            self.last_kf_time = frame.timestamp
-            self.last_kf_online = bo.T_world_base.copy()
-            if bo.status is BackendStatus.RECOVERED:
-                note = (note + "; " if note else "") + "backend reset"
-        T_online = self._online_pose(frame.timestamp)
-        # The frame counts as processed only once everything about it is known (an interrupt
-        # in the middle leaves frames and records in step).
-        self.frames.append((frame.index, frame.timestamp))
-        self.online.append(T_online)
-        latency_ms = (time.perf_counter() - t_in) * 1000.0
-        self.records.append(self._record(fo, bo, note, latency_ms))
-        if self.viewer is not None:
-            est = FrameEstimate(frame.index, frame.timestamp, T_online, fo.is_keyframe, False,
-                                bo.status if bo is not None else None, latency_ms, fo, bo, note)
-            self.viewer.log_frame(frame, est)
+                                            "", "", "", 0, float("nan"), 0.0, 0.0, note=est.note))
+        else:
+            est = self.vo.process(item.timestamp, item.image, index=item.index, mask=item.mask, is_last=is_last)
+            assert est.frontend is not None
+            # The frame counts as processed only once everything about it is known (an interrupt
+            # in the middle leaves frames and records in step).
+            self.records.append(self._record(est.frontend, est.backend, est.note, est.latency_ms))
+            if self.viewer is not None:
+                self.viewer.log_frame(item, est)
+        if self._journal is not None:
+            self._journal.add(est.timestamp, est.T_world_base)
+            if est.is_keyframe:
+                self._journal.flush()
 
-    def _online_pose(self, t: float) -> np.ndarray:
-        """Causal pose at time t: the newest keyframe estimate as it was when added, moved on by
-        the wheels since (held without wheels)."""
-        if self.last_kf_online is None or self.last_kf_time is None:
-            return np.eye(4)
-        odo = self.seq.odometry if self.use_odometry else None
-        if odo is not None and t > self.last_kf_time:
-            return self.last_kf_online @ odo.delta(self.last_kf_time, t)
-        return self.last_kf_online.copy()
+    def _close_journal(self) -> None:
+        if self._journal is not None:
+            self._journal.close()
+            self._journal = None
 
     def _record(self, fo: FrontendOutput, bo: BackendOutput | None, note: str, latency_ms: float) -> FrameRecord:
         return FrameRecord(
@@ -240,62 +234,6 @@ class Pipeline:
             latency_ms=round(latency_ms, 3),
         )
 
-    # ------------------------------------------------------------------ outputs
-    def keyframe_pose(self, frame_index: int) -> np.ndarray | None:
-        try:
-            k = self.kf_frames.index(frame_index)
-        except ValueError:
-            return None
-        return self.backend.kf_pose.get(k)
-
-    def scale_report(self) -> dict:
-        """Whether the run is metric, what fixed its scale, and the final wheel calibration."""
-        be = self.backend
-        return {
-            "metric": bool(be.metric),
-            "scale_sources": [s.value for s in be.scale_sources()],
-            "wheel_calibration": be.calibration_with_sigma() if be.calibrate and be.k >= 0 else None,
-        }
-
-    def online_trajectory(self) -> Trajectory:
-        """The causal pose of every processed or skipped frame (what the robot had at that frame's time)."""
-        if not self.frames:
-            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
-        return Trajectory(np.asarray([t for _, t in self.frames]), np.stack(self.online))
-
-    def assemble_trajectory(self) -> Trajectory:
-        """One pose per frame: keyframes from the smoother, the others in between.
-
-        Frames between two keyframes are placed along the segment joining them, at the
-        fraction of wheel distance (or time, without odometry) covered so far; frames after
-        the last keyframe follow the wheels (or stay at the last keyframe).
-        """
-        if not self.frames or not self.kf_frames:
-            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
-        kf_poses = [self.backend.kf_pose[k] for k in range(len(self.kf_frames))]
-        kf_t = np.asarray(self.kf_times)
-        odo = self.seq.odometry if self.use_odometry else None
-        ts, poses = [], []
-        for _, t in self.frames:
-            j = int(np.searchsorted(kf_t, t, side="right")) - 1
-            if j < 0:
-                T = kf_poses[0]
-            elif j >= len(kf_t) - 1 or t == kf_t[j]:
-                T = kf_poses[j]
-                if t > kf_t[j] and odo is not None:
-                    T = T @ odo.delta(kf_t[j], t)
-            else:
-                t0, t1 = kf_t[j], kf_t[j + 1]
-                s = (t - t0) / (t1 - t0)
-                if odo is not None:
-                    total = odo.distance(t0, t1)
-                    if total > 1e-3:
-                        s = odo.distance(t0, t) / total
-                T = interpolate_T(kf_poses[j], kf_poses[j + 1], float(np.clip(s, 0.0, 1.0)))
-            ts.append(t)
-            poses.append(T)
-        return Trajectory(np.asarray(ts), np.stack(poses))
-
 
 def write_outputs(cfg: Config, result: RunResult, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
@@ -308,8 +246,7 @@ def write_outputs(cfg: Config, result: RunResult, out: Path) -> None:
               header="windowvo estimate (fixed-lag smoothed): " + header)
     if result.trajectory_online is not None and len(result.trajectory_online):
         write_tum(out / "trajectory_online.txt", result.trajectory_online.timestamps,
-                  result.trajectory_online.T_world_base,
-                  header="windowvo causal estimate (each frame's pose as known at that frame's time): " + header)
+                  result.trajectory_online.T_world_base, header=ONLINE_HEADER + ": " + header)
     write_stats(out / "stats.csv", result.records)
     save_config(cfg, out / "config_resolved.yaml")
 

@@ -22,17 +22,28 @@ class WheelOdometry:
     y: np.ndarray
     yaw: np.ndarray  # unwrapped
     comment: str = ""
+    # A streamed odometry may be asked for a time just past its newest sample (the frame came first):
+    # poses up to this many seconds past the end are extrapolated at the last velocity.
+    extrapolate_s: float = 0.0
 
     @property
     def synthetic(self) -> bool:
         return "synthetic" in self.comment.lower()
 
     def covers(self, t: float, tol: float = 1e-6) -> bool:
-        return self.timestamps[0] - tol <= t <= self.timestamps[-1] + tol
+        return self.timestamps[0] - tol <= t <= self.timestamps[-1] + tol + self.extrapolate_s
 
     def pose_at(self, t: float) -> np.ndarray:
-        """T_odom_base at time t, linearly interpolated (clamped at the ends)."""
+        """T_odom_base at time t, linearly interpolated (clamped at the start; past the end, extrapolated
+        for up to ``extrapolate_s``, then clamped)."""
         ts = self.timestamps
+        last = float(ts[-1])
+        if t > last and self.extrapolate_s > 0 and len(ts) >= 2:
+            dt = float(ts[-1] - ts[-2])
+            s = min(t - last, self.extrapolate_s) / max(dt, 1e-9)
+            return planar_T(float(self.x[-1] + s * (self.x[-1] - self.x[-2])),
+                            float(self.y[-1] + s * (self.y[-1] - self.y[-2])),
+                            float(self.yaw[-1] + s * (self.yaw[-1] - self.yaw[-2])))
         x = np.interp(t, ts, self.x)
         y = np.interp(t, ts, self.y)
         yaw = np.interp(t, ts, self.yaw)
@@ -46,8 +57,9 @@ class WheelOdometry:
         """Path length driven between t0 and t1 (sums the samples in between)."""
         ts = self.timestamps
         inside = (ts > t0) & (ts < t1)
-        px = np.concatenate([[np.interp(t0, ts, self.x)], self.x[inside], [np.interp(t1, ts, self.x)]])
-        py = np.concatenate([[np.interp(t0, ts, self.y)], self.y[inside], [np.interp(t1, ts, self.y)]])
+        p0, p1 = self.pose_at(t0), self.pose_at(t1)
+        px = np.concatenate([[p0[0, 3]], self.x[inside], [p1[0, 3]]])
+        py = np.concatenate([[p0[1, 3]], self.y[inside], [p1[1, 3]]])
         return float(np.hypot(np.diff(px), np.diff(py)).sum())
 
     def max_gap_in(self, t0: float, t1: float) -> float:
@@ -58,6 +70,47 @@ class WheelOdometry:
         if i1 <= i0:
             return 0.0
         return float(np.max(np.diff(ts[i0 : i1 + 1])))
+
+
+class WheelBuffer:
+    """Wheel odometry that grows sample by sample (a robot's stream); ``view()`` is a :class:`WheelOdometry`
+    of the samples so far (no copy: arrays grow by doubling), extrapolated a little past the newest one."""
+
+    def __init__(self, extrapolate_s: float, comment: str = ""):
+        self.extrapolate_s = extrapolate_s
+        self.comment = comment
+        self._a = np.zeros((4, 1024))  # rows: t, x, y, yaw (unwrapped)
+        self._n = 0
+        self._view: WheelOdometry | None = None
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def last_time(self) -> float:
+        return float(self._a[0, self._n - 1]) if self._n else -np.inf
+
+    def append(self, t: float, x: float, y: float, yaw: float) -> None:
+        if not all(np.isfinite(v) for v in (t, x, y, yaw)):
+            raise SequenceError(f"wheel odometry sample at t={t} is not finite")
+        if self._n and t <= self.last_time:
+            raise SequenceError(f"wheel odometry timestamps must increase: {t} after {self.last_time}")
+        if self._n:  # unwrap the yaw against the previous sample
+            prev = float(self._a[3, self._n - 1])
+            yaw = prev + float(np.angle(np.exp(1j * (yaw - prev))))
+        if self._n == self._a.shape[1]:
+            self._a = np.concatenate([self._a, np.zeros_like(self._a)], axis=1)
+        self._a[:, self._n] = (t, x, y, yaw)
+        self._n += 1
+        self._view = None
+
+    def view(self) -> WheelOdometry | None:
+        if self._n < 2:
+            return None
+        if self._view is None:
+            a = self._a[:, : self._n]
+            self._view = WheelOdometry(a[0], a[1], a[2], a[3], self.comment, self.extrapolate_s)
+        return self._view
 
 
 def read_odometry_csv(path: Path) -> WheelOdometry:

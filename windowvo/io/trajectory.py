@@ -37,6 +37,13 @@ class Trajectory:
         return Trajectory(self.timestamps.copy(), np.einsum("ij,njk->nik", T0_inv, self.T_world_base))
 
 
+def tum_line(t: float, T: np.ndarray) -> str:
+    """One TUM line (t tx ty tz qx qy qz qw) of a 4x4 pose."""
+    q = quat_from_R(T[:3, :3])
+    p = T[:3, 3]
+    return f"{t:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
+
+
 def write_tum(path: Path, timestamps: np.ndarray, poses: np.ndarray, header: str | None = None) -> None:
     """Write poses atomically (temp file then rename) so a crash never leaves half a file."""
     path = Path(path)
@@ -44,12 +51,7 @@ def write_tum(path: Path, timestamps: np.ndarray, poses: np.ndarray, header: str
     lines: list[str] = []
     if header:
         lines.extend(f"# {h}" for h in header.splitlines())
-    for t, T in zip(timestamps, poses):
-        q = quat_from_R(T[:3, :3])
-        p = T[:3, 3]
-        lines.append(
-            f"{t:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
-        )
+    lines.extend(tum_line(float(t), T) for t, T in zip(timestamps, poses))
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text("\n".join(lines) + ("\n" if lines else ""))
     tmp.replace(path)
@@ -80,3 +82,30 @@ def read_tum(path: Path) -> Trajectory:
         raise SequenceError(f"{path.name}: timestamps are not strictly increasing")
     poses = np.stack([make_T(R_from_quat(r[4:8]), r[1:4]) for r in a])
     return Trajectory(a[:, 0], poses)
+
+
+class TumJournal:
+    """A TUM file written as a run goes: lines are appended and flushed in batches, so a process killed
+    at any moment (SIGKILL, out of memory) leaves every flushed line readable. Only for poses that never
+    change once written (the causal trajectory); the final file is rewritten atomically at the end."""
+
+    def __init__(self, path: Path, header: str):
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self._fh = path.open("w")
+        self._fh.write("".join(f"# {h}\n" for h in header.splitlines()))
+        self._pending: list[str] = []
+
+    def add(self, t: float, T: np.ndarray) -> None:
+        self._pending.append(tum_line(t, T))
+
+    def flush(self) -> None:
+        if self._pending and not self._fh.closed:
+            self._fh.write("\n".join(self._pending) + "\n")
+            self._fh.flush()
+            self._pending = []
+
+    def close(self) -> None:
+        self.flush()
+        self._fh.close()

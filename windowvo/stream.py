@@ -1,0 +1,201 @@
+"""The streaming odometry API: feed wheel samples and frames, get each frame's pose at its own time.
+
+::
+
+    vo = windowvo.Odometry(camera, config)        # or windowvo.Odometry.from_config("robot.yaml", camera)
+    vo.add_wheel_odometry(t, x, y, yaw)            # any rate, any time before the frame
+    est = vo.process(t, image)                     # FrameEstimate: T_world_base at t, status, keyframe flag, ...
+    vo.smoothed_trajectory()                       # the fixed-lag smoothed poses so far
+
+One code path: the file pipeline (``pipeline.py``) drives this same object, feeding each
+frame's wheel samples just before the frame, so ``trajectory_online.txt`` is exactly what a robot
+calling :meth:`Odometry.process` in its loop would have had.
+
+The causal pose of a frame is the newest keyframe estimate as it was right after that keyframe
+was added, moved on to the frame's time by the wheels (held without wheels). The smoothed
+trajectory refines every keyframe with up to ``backend.window_keyframes`` later ones and places
+frames between keyframes along the keyframe segment.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .backend.smoother import SlidingWindowBackend
+from .camera import CameraModel
+from .config import Config, config_from_dict, load_config
+from .errors import WindowVOError
+from .frontend.frontend import Frontend
+from .geometry import interpolate_T
+from .io.odometry import WheelBuffer, WheelOdometry
+from .io.trajectory import Trajectory
+from .types import BackendOutput, BackendStatus, Frame, FrameEstimate, OdometryStep
+
+log = logging.getLogger(__name__)
+
+
+def default_config() -> Config:
+    """The default configuration, for callers that have no config file (no sequence, no output)."""
+    return config_from_dict({"sequence": ".", "output": "."})
+
+
+class Odometry:
+    """Visual-wheel odometry fed one frame (and any number of wheel samples) at a time."""
+
+    def __init__(self, camera: CameraModel, config: Config | None = None, use_wheels: bool = True,
+                 static_mask: np.ndarray | None = None, wheel_comment: str = ""):
+        cfg = config if config is not None else default_config()
+        self.cfg = cfg
+        self.camera = camera
+        self.use_odometry = bool(use_wheels and cfg.backend.use_odometry)
+        self.frontend = Frontend(camera, cfg.frontend, cfg.keyframes, cfg.gates, static_mask)
+        self.backend = SlidingWindowBackend(camera, cfg.backend, self.use_odometry)
+        self.wheels = WheelBuffer(extrapolate_s=cfg.backend.odometry.max_gap_s, comment=wheel_comment)
+        self.frames: list[tuple[int, float]] = []  # (frame index, timestamp) of every frame, skipped ones too
+        self.online: list[np.ndarray] = []  # causal T_world_base per frame
+        self.kf_frames: list[int] = []
+        self.kf_times: list[float] = []
+        self.last_kf_time: float | None = None
+        self.last_kf_online: np.ndarray | None = None  # newest keyframe pose as estimated when it was added
+        self.notes: list[str] = []
+
+    @classmethod
+    def from_config(cls, config: Config | str | Path, camera: CameraModel, use_wheels: bool = True) -> Odometry:
+        """From a validated config or a YAML file (its ``sequence``/``output`` keys are not used here)."""
+        cfg = config if isinstance(config, Config) else load_config(config)
+        return cls(camera, cfg, use_wheels)
+
+    # ------------------------------------------------------------------ inputs
+    def add_wheel_odometry(self, t: float, x: float, y: float, yaw: float) -> None:
+        """One wheel-odometry sample: planar pose of the base in the odometry frame at time t (s)."""
+        self.wheels.append(t, x, y, yaw)
+
+    def _wheels(self) -> WheelOdometry | None:
+        return self.wheels.view() if self.use_odometry else None
+
+    def process(self, t: float, image: np.ndarray, index: int | None = None, mask: np.ndarray | None = None,
+                is_last: bool = False) -> FrameEstimate:
+        """Track one grayscale uint8 frame taken at time t; returns its causal pose.
+
+        ``index`` defaults to the count of frames so far; ``is_last`` makes it a keyframe (end of a run)."""
+        t_in = time.perf_counter()
+        if image is None or image.ndim != 2 or image.dtype != np.uint8:
+            raise WindowVOError("Odometry.process needs a grayscale uint8 image (H x W)")
+        if image.shape != (self.camera.height, self.camera.width):
+            raise WindowVOError(f"image is {image.shape[1]}x{image.shape[0]}, the camera "
+                                f"{self.camera.width}x{self.camera.height}")
+        if self.frames and t <= self.frames[-1][1]:
+            raise WindowVOError(f"frame times must increase: {t} after {self.frames[-1][1]}")
+        idx = len(self.frames) if index is None else index
+        frame = Frame(idx, float(t), image, mask)
+        fo = self.frontend.process(frame, self._odom_since_kf(t), force_keyframe=is_last)
+        bo: BackendOutput | None = None
+        note = ""
+        if fo.is_keyframe:
+            odom = self._odom_step(self.last_kf_time, t) if self.last_kf_time is not None else None
+            if odom is not None and not odom.ok:
+                note = "odometry gap: vision only"
+            bo = self.backend.add_keyframe(fo, odom)
+            self.kf_frames.append(idx)
+            self.kf_times.append(float(t))
+            self.last_kf_time = float(t)
+            self.last_kf_online = bo.T_world_base.copy()
+            if bo.status is BackendStatus.RECOVERED:
+                note = (note + "; " if note else "") + "backend reset"
+        T = self._online_pose(t)
+        self.frames.append((idx, float(t)))
+        self.online.append(T)
+        return FrameEstimate(idx, float(t), T, fo.is_keyframe, False, bo.status if bo is not None else None,
+                             (time.perf_counter() - t_in) * 1000.0, fo, bo, note)
+
+    def skip(self, index: int, t: float, reason: str) -> FrameEstimate:
+        """A frame that could not be used (black, duplicate, unreadable): it still gets a pose."""
+        T = self._online_pose(t)
+        self.frames.append((index, float(t)))
+        self.online.append(T)
+        return FrameEstimate(index, float(t), T, skipped=True, note=f"skipped: {reason}")
+
+    # ------------------------------------------------------------------ wheel helpers
+    def _odom_since_kf(self, t: float) -> tuple[float, float] | None:
+        """Distance and absolute turn since the last keyframe (the front end's standstill check)."""
+        odo = self.wheels.view()
+        if odo is None or self.last_kf_time is None:
+            return None
+        d = odo.delta(self.last_kf_time, t)
+        return float(np.hypot(d[0, 3], d[1, 3])), abs(float(np.arctan2(d[1, 0], d[0, 0])))
+
+    def _odom_step(self, t0: float, t1: float) -> OdometryStep | None:
+        odo = self._wheels()
+        if not self.use_odometry:
+            return None
+        if odo is None:
+            msg = f"no wheel odometry yet at t={t1:.3f} s; vision only for that step"
+            log.warning(msg)
+            self.notes.append(msg)
+            return OdometryStep(np.eye(4), 0.0, False)
+        ok = odo.covers(t0) and odo.covers(t1) and odo.max_gap_in(t0, t1) <= self.cfg.backend.odometry.max_gap_s
+        if not ok:
+            msg = f"odometry missing or stale between t={t0:.3f} and t={t1:.3f} s; vision only for that step"
+            log.warning(msg)
+            self.notes.append(msg)
+        return OdometryStep(odo.delta(t0, t1), odo.distance(t0, t1), ok)
+
+    def _online_pose(self, t: float) -> np.ndarray:
+        if self.last_kf_online is None or self.last_kf_time is None:
+            return np.eye(4)
+        odo = self._wheels()
+        if odo is not None and t > self.last_kf_time:
+            return self.last_kf_online @ odo.delta(self.last_kf_time, t)
+        return self.last_kf_online.copy()
+
+    # ------------------------------------------------------------------ outputs
+    def online_trajectory(self) -> Trajectory:
+        """The causal pose of every frame so far (what the robot had at each frame's time)."""
+        if not self.frames:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        return Trajectory(np.asarray([t for _, t in self.frames]), np.stack(self.online))
+
+    def smoothed_trajectory(self) -> Trajectory:
+        """One pose per frame: keyframes from the smoother, the others in between.
+
+        Frames between two keyframes are placed along the segment joining them, at the fraction of
+        wheel distance (or time, without wheels) covered so far; frames after the last keyframe follow
+        the wheels (or stay at the last keyframe)."""
+        if not self.frames or not self.kf_frames:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        kf_poses = [self.backend.kf_pose[k] for k in range(len(self.kf_frames))]
+        kf_t = np.asarray(self.kf_times)
+        odo = self._wheels()
+        ts, poses = [], []
+        for _, t in self.frames:
+            j = int(np.searchsorted(kf_t, t, side="right")) - 1
+            if j < 0:
+                T = kf_poses[0]
+            elif j >= len(kf_t) - 1 or t == kf_t[j]:
+                T = kf_poses[j]
+                if t > kf_t[j] and odo is not None:
+                    T = T @ odo.delta(kf_t[j], t)
+            else:
+                t0, t1 = kf_t[j], kf_t[j + 1]
+                s = (t - t0) / (t1 - t0)
+                if odo is not None:
+                    total = odo.distance(t0, t1)
+                    if total > 1e-3:
+                        s = odo.distance(t0, t) / total
+                T = interpolate_T(kf_poses[j], kf_poses[j + 1], float(np.clip(s, 0.0, 1.0)))
+            ts.append(t)
+            poses.append(T)
+        return Trajectory(np.asarray(ts), np.stack(poses))
+
+    def scale_report(self) -> dict:
+        """Whether the run is metric, what fixed its scale, and the final wheel calibration."""
+        be = self.backend
+        return {
+            "metric": bool(be.metric),
+            "scale_sources": [s.value for s in be.scale_sources()],
+            "wheel_calibration": be.calibration_with_sigma() if be.calibrate and be.k >= 0 else None,
+        }
