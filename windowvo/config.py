@@ -187,6 +187,8 @@ class BackendConfig(_Section):
                                                              "none)")
     huber_k: float | None = Field(None, gt=0, description="threshold of the pixel loss in sigmas; default: from the "
                                   "chi-square quantile (2-D) of robust_confidence")
+    propagate_lens_noise: bool = Field(True, description="scale each observation's pixel sigma by the lens's "
+                                       "undistortion stretch at that pixel (matters for wide-angle and fisheye lenses)")
     robust_confidence: float = Field(0.95, gt=0.5, lt=1, description="share of inlier residuals inside the robust "
                                      "threshold: thresholds come from the chi-square quantile of each factor's dimension")
     min_triangulation_angle_deg: float = Field(1.0, gt=0, lt=90, description="a track's rays must diverge this much "

@@ -90,8 +90,10 @@ def landmark_birth_prior(key: int, p_world_landmark: np.ndarray, depth_m: float)
 # ---------------------------------------------------------------------------- vision
 
 
-def pixel_noise(cfg: BackendConfig):
-    return robust(gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma), cfg.robust, threshold(cfg.huber_k, 2, cfg))
+def pixel_noise(cfg: BackendConfig, stretch: float = 1.0):
+    """Robust 2-D pixel noise; ``stretch`` scales the sigma (a lens's undistortion at that pixel)."""
+    return robust(gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma * stretch), cfg.robust,
+                  threshold(cfg.huber_k, 2, cfg))
 
 
 def projection_factor(uv: np.ndarray, pose_key: int, landmark_key: int, noise, K: gtsam.Cal3_S2,

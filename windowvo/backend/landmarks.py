@@ -69,7 +69,8 @@ class LandmarkManager:
         self.cfg = cfg
         self.T_base_cam = camera.T_base_cam
         self._cos_min_angle = float(np.cos(np.radians(cfg.min_triangulation_angle_deg)))
-        self.obs: dict[int, list[tuple[int, np.ndarray]]] = {}  # track id -> [(k, undistorted px)]
+        # track id -> [(k, undistorted px, pixel-noise stretch of the lens at that observation)]
+        self.obs: dict[int, list[tuple[int, np.ndarray, float]]] = {}
         self.landmarks: dict[int, LandmarkState] = {}
         self.dead: set[int] = set()
         self.pending_removal: list[int] = []  # smoother factor indices to remove at the next update
@@ -122,25 +123,27 @@ class LandmarkManager:
         return inv_T(T_cam_world) @ inv_T(self.T_base_cam)
 
     # ------------------------------------------------------------------ observations
-    def observe(self, fo_ids: np.ndarray, uv: np.ndarray, k: int, allow_new: bool
-                ) -> tuple[list[tuple[int, np.ndarray]], list[int]]:
+    def observe(self, fo_ids: np.ndarray, uv: np.ndarray, k: int, allow_new: bool, stretch: np.ndarray | None = None
+                ) -> tuple[list[tuple[int, np.ndarray, float]], list[int]]:
         """Sort this keyframe's tracks: observations of existing landmarks, and tracks ready to triangulate.
 
-        Returns ``(seen, candidates)``: (track id, pixel) of live landmarks (their timestamps must be
-        refreshed), and ids of tracks seen by enough keyframes, longest first.
+        Returns ``(seen, candidates)``: (track id, pixel, noise stretch) of live landmarks (their timestamps
+        must be refreshed), and ids of tracks seen by enough keyframes, longest first. ``stretch`` is the
+        lens's pixel-noise stretch per track (1 for a pinhole; ``FrontendOutput.pixel_sigma_scale``).
         """
-        seen: list[tuple[int, np.ndarray]] = []
+        seen: list[tuple[int, np.ndarray, float]] = []
         candidates: list[int] = []
-        for tid, p in zip(fo_ids.tolist(), uv):
+        st = np.ones(len(fo_ids)) if stretch is None else np.asarray(stretch, float)
+        for tid, p, sc in zip(fo_ids.tolist(), uv, st.tolist()):
             if tid in self.dead:
                 continue
             lm = self.landmarks.get(tid)
             if lm is not None:
                 lm.last_kf = k
-                seen.append((tid, p))
+                seen.append((tid, p, sc))
                 continue
             lst = self.obs.setdefault(tid, [])
-            lst.append((k, np.asarray(p, float)))
+            lst.append((k, np.asarray(p, float), sc))
             if allow_new and len(lst) >= self.cfg.min_landmark_observations:
                 candidates.append(tid)
         candidates.sort(key=lambda t: -len(self.obs[t]))
@@ -164,10 +167,10 @@ class LandmarkManager:
 
     def triangulate(self, tid: int, cams: dict[int, tuple[np.ndarray, np.ndarray]]) -> np.ndarray | None:
         """Midpoint triangulation of a track over the window, with angle, depth and reprojection checks."""
-        obs = [(kk, p) for kk, p in self.obs.get(tid, []) if kk in cams]
+        obs = [(kk, p) for kk, p, _ in self.obs.get(tid, []) if kk in cams]
         return triangulate_midpoint(self.camera, self.cfg, obs, cams, self._cos_min_angle)
 
-    def promote(self, tid: int, k: int, on_ground: bool) -> list[tuple[int, np.ndarray]]:
+    def promote(self, tid: int, k: int, on_ground: bool) -> list[tuple[int, np.ndarray, float]]:
         """Turn a triangulated track into a landmark; returns its stored observations."""
         self.landmarks[tid] = LandmarkState(L(tid), k, on_ground=on_ground)
         return self.obs.pop(tid)
@@ -188,7 +191,7 @@ class LandmarkManager:
         """Forget the bookkeeping of landmarks and observations the smoother has marginalised."""
         self.forget([t for t, lm in self.landmarks.items() if lm.last_kf < window_start])
         for tid in list(self.obs):
-            kept = [(kk, p) for kk, p in self.obs[tid] if kk >= window_start]
+            kept = [o for o in self.obs[tid] if o[0] >= window_start]
             if kept:
                 self.obs[tid] = kept
             else:
@@ -215,14 +218,15 @@ class LandmarkManager:
         out, self.pending_removal = self.pending_removal, []
         return out
 
-    def restart(self, k: int, fo_ids: np.ndarray, uv: np.ndarray) -> None:
+    def restart(self, k: int, fo_ids: np.ndarray, uv: np.ndarray, stretch: np.ndarray | None = None) -> None:
         """After a reset: every landmark is gone; this keyframe's observations seed new ones."""
         self.dead.update(self.landmarks)
         self.landmarks.clear()
         self.obs.clear()
         self.pending_removal = []
-        for tid, p in zip(fo_ids.tolist(), uv):
-            self.obs[tid] = [(k, np.asarray(p, float))]
+        st = np.ones(len(fo_ids)) if stretch is None else np.asarray(stretch, float)
+        for tid, p, sc in zip(fo_ids.tolist(), uv, st.tolist()):
+            self.obs[tid] = [(k, np.asarray(p, float), sc)]
         self.dead.difference_update(fo_ids.tolist())
 
 

@@ -221,7 +221,7 @@ class SlidingWindowBackend:
         cos_min = float(np.cos(np.radians(self.cfg.min_triangulation_angle_deg)))
         pts = []
         for tid, lst in self.lm.obs.items():
-            first = [p for kk, p in lst if kk == 0]
+            first = [p for kk, p, _ in lst if kk == 0]
             if first and tid in cur:
                 p = triangulate_midpoint(self.camera, self.cfg.model_copy(update={"max_landmark_depth_m": 1e6}),
                                          [(0, first[0]), (1, cur[tid])], cams, cos_min)
@@ -292,10 +292,10 @@ class SlidingWindowBackend:
             poses = {kk: self.kf_pose[kk] for kk in range(w0, k)}
             poses[k] = T_guess
             cams = LandmarkManager.camera_poses(poses, self.T_base_cam)
-            seen, candidates = self.lm.observe(fo.track_ids, fo.pixels_undistorted, k, allow_new)
-            for tid, uv in seen:
+            seen, candidates = self.lm.observe(fo.track_ids, fo.pixels_undistorted, k, allow_new, fo.pixel_sigma_scale)
+            for tid, uv, sc in seen:
                 key = L(tid)
-                graph.add(fac.projection_factor(uv, X(k), key, self.pixel_noise, self.K, self.body_P_sensor))
+                graph.add(fac.projection_factor(uv, X(k), key, self._pixel_noise(sc), self.K, self.body_P_sensor))
                 owners.append((tid, k))
                 stamps[key] = float(k)
                 n_vis += 1
@@ -309,9 +309,9 @@ class SlidingWindowBackend:
                 stamps[key] = float(k)
                 graph.add(fac.landmark_birth_prior(key, p, float(np.linalg.norm(p - cam_center))))
                 owners.append(None)
-                for kk, uv_k in self.lm.promote(tid, k, bool(floor)):
+                for kk, uv_k, sc in self.lm.promote(tid, k, bool(floor)):
                     if kk >= w0:
-                        graph.add(fac.projection_factor(uv_k, X(kk), key, self.pixel_noise, self.K,
+                        graph.add(fac.projection_factor(uv_k, X(kk), key, self._pixel_noise(sc), self.K,
                                                         self.body_P_sensor))
                         owners.append((tid, kk))
                         n_vis += 1
@@ -341,6 +341,13 @@ class SlidingWindowBackend:
         errs = reprojection_errors(self.camera, self.kf_pose[k], self.T_base_cam, p_world, uv)
         self.lm.check_outliers(ids, errs, self.window_start(k + 1))
         return len(new_lms), n_vis, n_ground
+
+    def _pixel_noise(self, stretch: float):
+        """Projection noise of one observation: the lens's stretch of the undistortion at that pixel scales
+        the sensor's pixel sigma (exactly 1 for a pinhole, up to 1/cos^2 of the ray angle for a fisheye)."""
+        if not self.cfg.propagate_lens_noise or abs(stretch - 1.0) < 0.05:
+            return self.pixel_noise
+        return fac.pixel_noise(self.cfg, stretch)
 
     def _ground_active(self) -> bool:
         return self.use_ground and self.metric
@@ -454,7 +461,7 @@ class SlidingWindowBackend:
     def _restart_window(self, fo: FrontendOutput, odom, T_guess: np.ndarray, with_previous: bool) -> None:
         k = self.k
         self._new_smoother()
-        self.lm.restart(k, fo.track_ids, fo.pixels_undistorted)
+        self.lm.restart(k, fo.track_ids, fo.pixels_undistorted, fo.pixel_sigma_scale)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         stamps: dict[int, float] = {}
