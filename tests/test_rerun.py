@@ -228,55 +228,66 @@ def test_recording_properties(recorded):
     assert acc["ate_se3_rmse_m"] == pytest.approx(recorded.report.accuracy.ate_se3_rmse_m)
 
 
-def _blueprint_views(rrd: Path) -> tuple[list[dict], dict]:
-    """Views (class, name, origin, y range, eye) and the time panel of the recording's last (active) blueprint."""
+def _blueprints(rrd: Path) -> list[tuple[list[dict], dict]]:
+    """Per blueprint store: its views (class, name, origin, y range, eye) and its time panel."""
     reader = RrdReader(str(rrd))
     stores = reader.blueprints()
     assert stores, "no blueprint in the recording"
-    views: dict[str, dict] = {}
-    panel: dict = {}
-    for ch in reader.stream(store=stores[-1]):
-        path = str(ch.entity_path)
-        rb = ch.to_record_batch()
-        cols = {n: rb.column(n).to_pylist()[-1] for n in rb.schema.names}
-        if path.startswith("/view/"):
-            vid = path.split("/")[2]
-            v = views.setdefault(vid, {})
-            for n, val in cols.items():
-                v[n.split(":")[-1]] = val[0] if isinstance(val, list) and len(val) == 1 else val
-        elif path == "/time_panel":
-            panel.update({n.split(":")[-1]: (val[0] if isinstance(val, list) else val) for n, val in cols.items()})
-    return [v for v in views.values() if "class_identifier" in v], panel
+    out = []
+    for store in stores:
+        views: dict[str, dict] = {}
+        panel: dict = {}
+        for ch in reader.stream(store=store):
+            path = str(ch.entity_path)
+            rb = ch.to_record_batch()
+            cols = {n: rb.column(n).to_pylist()[-1] for n in rb.schema.names}
+            if path.startswith("/view/"):
+                v = views.setdefault(path.split("/")[2], {})
+                for n, val in cols.items():
+                    v[n.split(":")[-1]] = val[0] if isinstance(val, list) and len(val) == 1 else val
+            elif path == "/time_panel":
+                panel.update({n.split(":")[-1]: (val[0] if isinstance(val, list) else val) for n, val in cols.items()})
+        out.append(([v for v in views.values() if "class_identifier" in v], panel))
+    return out
 
 
 def test_blueprint_views(recorded):
-    views, panel = _blueprint_views(recorded.rrd)
-    by_class: dict[str, list[dict]] = {}
-    for v in views:
-        by_class.setdefault(v["class_identifier"], []).append(v)
-    assert [v["space_origin"] for v in by_class["3D"]] == ["world"]
-    assert [v["space_origin"] for v in by_class["2D"]] == ["world/estimate/base/cam"]
-    assert len(by_class["TimeSeries"]) >= 3
-    assert len(by_class["TextLog"]) == 1
-    assert panel["timeline"] == "time"
-    # top-down on the trajectory: the eye is above the centre of the ground truth's extent over the run
-    eye = by_class["3D"][0]
+    """The layout sent at the start and the one sent at the end (with the plots' final y ranges)."""
+    stores = _blueprints(recorded.rrd)
+    assert len(stores) == 2
     gt_traj = recorded.seq.groundtruth.anchored()
     gt = gt_traj.positions[gt_traj.timestamps <= recorded.seq.timestamps[N_FRAMES - 1] + 1e-6]
     assert len(gt) < len(gt_traj)  # the run covers part of the sequence: the view frames that part
-    centre = (gt[:, :2].min(axis=0) + gt[:, :2].max(axis=0)) / 2
-    target, position = np.asarray(eye["look_target"]), np.asarray(eye["position"])
-    assert np.allclose(target[:2], centre, atol=1e-3)
-    extent = float(np.max(gt[:, :2].max(axis=0) - gt[:, :2].min(axis=0)))
-    assert position[2] > extent and np.linalg.norm(position[:2] - target[:2]) < 0.01 * position[2]
-    # each plot leaves its top share free for the legend: the plotted data stays below it
-    for v in by_class["TimeSeries"]:
-        unit = v["space_origin"].split("/")[-1]
-        top = v["range"][1]
-        values = [r[2][0] for ch_path in {str(c.entity_path) for c in recorded.chunks}
-                  if ch_path.startswith(f"/plots/{unit}/") for r in _rows(recorded.chunks, ch_path, "Scalars:scalars")]
-        assert values
-        assert np.percentile(values, 99) <= (1 - LEGEND_ROWS_SHARE) * top + 1e-9, (unit, top)
+    complete = 0
+    for views, panel in stores:
+        by_class: dict[str, list[dict]] = {}
+        for v in views:
+            by_class.setdefault(v["class_identifier"], []).append(v)
+        assert [v["space_origin"] for v in by_class["3D"]] == ["world"]
+        assert [v["space_origin"] for v in by_class["2D"]] == ["world/estimate/base/cam"]
+        assert len(by_class["TimeSeries"]) >= 3
+        assert len(by_class["TextLog"]) == 1
+        assert panel["timeline"] == "time"
+        # top-down on the trajectory: the eye is above the centre of the ground truth's extent over the run
+        eye = by_class["3D"][0]
+        centre = (gt[:, :2].min(axis=0) + gt[:, :2].max(axis=0)) / 2
+        target, position = np.asarray(eye["look_target"]), np.asarray(eye["position"])
+        assert np.allclose(target[:2], centre, atol=1e-3)
+        extent = float(np.max(gt[:, :2].max(axis=0) - gt[:, :2].min(axis=0)))
+        assert position[2] > extent and np.linalg.norm(position[:2] - target[:2]) < 0.01 * position[2]
+        # the final layout gives every plot a y range that leaves its top share free for the legend: the
+        # plotted data stays below it (the layout sent at the start can only guess the counts' range)
+        ranged = [v for v in by_class["TimeSeries"] if v.get("range") is not None]
+        if len(ranged) < len(by_class["TimeSeries"]):
+            continue
+        for v in ranged:
+            unit = v["space_origin"].split("/")[-1]
+            entities = {str(c.entity_path) for c in recorded.chunks if str(c.entity_path).startswith(f"/plots/{unit}/")}
+            values = [r[2][0] for e in entities for r in _rows(recorded.chunks, e, "Scalars:scalars")]
+            assert values
+            assert np.percentile(values, 99) <= (1 - LEGEND_ROWS_SHARE) * v["range"][1] + 1e-9, (unit, v["range"])
+        complete += 1
+    assert complete == 1  # the final layout has a range on every plot
 
 
 def test_skipped_frame_goes_to_the_text_log(short_loop, tmp_path):

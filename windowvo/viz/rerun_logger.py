@@ -194,8 +194,8 @@ LEGEND_ROWS_SHARE = 0.3  # top share of each plot kept free for its legend (y ra
 def plot_ranges(cfg: Config | None, maxima: dict[str, float] | None = None) -> dict[str, tuple[float, float]]:
     """y range per plot unit, with room at the top for the legend so that it covers no data.
 
-    Counts and ratios have known bounds (the feature and landmark budgets, 1); milliseconds and
-    pixels get theirs from ``maxima`` (the data's high percentile, known when the run ends)."""
+    Ratios are bounded by 1; counts start from the feature and landmark budgets; ``maxima`` (the
+    data's top, known when the run ends) sets the others and overrides the counts' guess."""
     tops: dict[str, float] = {"ratios": 1.05}
     if cfg is not None:
         tops["counts"] = 1.05 * max(cfg.frontend.max_features, cfg.backend.max_landmarks)
@@ -333,10 +333,10 @@ class RerunLogger:
         rec.log("states/backend", rr.StateConfiguration(values=[s.value for s in STATUS_RGB],
                                                         colors=[STATUS_RGB[s] for s in STATUS_RGB]), static=True)
         # Sizes in screen points (negative radii), so paths read the same on a 5 m room and a 5 km drive.
-        self.online = RevealedPath("world/estimate/online", ESTIMATE_RGB, ui(1.5))
+        self.online = RevealedPath("world/estimate/online", ESTIMATE_RGB, ui(2.5))
         self.keyframes = RevealedPath("world/estimate/keyframes", KEYFRAME_RGB, ui(3.0), as_points=True)
-        self.groundtruth = RevealedPath("world/groundtruth", GROUNDTRUTH_RGB, ui(1.5))
-        self.wheels = RevealedPath("world/wheel_odometry", WHEELS_RGB, ui(1.5))
+        self.groundtruth = RevealedPath("world/groundtruth", GROUNDTRUTH_RGB, ui(1.0))
+        self.wheels = RevealedPath("world/wheel_odometry", WHEELS_RGB, ui(1.0))
         self._paths = [self.online, self.keyframes, self.groundtruth, self.wheels]
         self._gt = seq.groundtruth.anchored() if seq.groundtruth is not None and len(seq.groundtruth) else None
         self._gt_next = 0  # next ground-truth sample to reveal
@@ -569,10 +569,12 @@ class RerunLogger:
         traj = result.trajectory
         if len(traj) and result.last_frame_index >= 0:
             self._set_time(result.last_frame_index, float(traj.timestamps[-1]))
-            self.rec.log("world/final", rr.LineStrips3D([traj.positions], colors=[FINAL_RGB], radii=ui(1.0)))
+            self.rec.log("world/final", rr.LineStrips3D([traj.positions], colors=[FINAL_RGB], radii=ui(1.25)))
         # The layout again, now with y ranges that leave the legends room above the data.
-        maxima = {unit: float(np.percentile(v, 99)) for unit, v in self._unit_values.items()
-                  if unit in ("ms", "px") and v}
+        # (counts: their maximum, as the landmark count can exceed the configured budgets; ms and px: the
+        # 99th percentile, so one spike does not flatten the plot)
+        maxima = {unit: float(np.max(v) if unit == "counts" else np.percentile(v, 99))
+                  for unit, v in self._unit_values.items() if unit in ("counts", "ms", "px") and v}
         self.rec.send_blueprint(blueprint(self.seq, self.cfg, maxima), make_active=True, make_default=True)
         self.rec.send_property("run", rr.AnyValues(
             frames=result.n_frames, keyframes=result.n_keyframes, skipped_frames=result.n_skipped,
