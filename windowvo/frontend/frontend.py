@@ -293,8 +293,9 @@ class Frontend:
         elif out.inlier_ratio < gc.min_inlier_ratio:
             out.gate, out.vision_ok = GateOutcome.LOW_INLIERS, False
         elif out.rot_comp_parallax_px < gc.min_parallax_px:
-            # Rotation-only or tiny motion: existing landmarks still constrain the pose,
-            # but nothing new can be triangulated.
+            # Rotation-only or tiny motion: existing landmarks still constrain the pose. The back end
+            # still lets tracks whose own rays diverge enough (distant scenes, older tracks) become
+            # landmarks; a pure spin gives none (each is checked for its triangulation angle).
             out.gate, out.vision_ok = GateOutcome.LOW_PARALLAX, True
         elif out.cheirality_ratio < gc.min_cheirality_ratio:
             out.gate, out.vision_ok = GateOutcome.CHEIRALITY, False
