@@ -189,6 +189,8 @@ class Pipeline:
             est = self.vo.skip(item.index, item.timestamp, item.reason)
             self.records.append(FrameRecord(item.index, item.timestamp, 0, 0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, False,
                                             "", "", "", 0, float("nan"), 0.0, 0.0, note=est.note))
+            if self.viewer is not None:
+                self.viewer.log_frame(None, est)
         else:
             est = self.vo.process(item.timestamp, item.image, index=item.index, mask=item.mask, is_last=is_last)
             assert est.frontend is not None
