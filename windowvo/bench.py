@@ -83,6 +83,8 @@ def ensure_rendered(case: SeqCase, cache: Path) -> Path:
     from .synth.generate import SynthSpec, generate_sequence
 
     seq_dir = cache / case.name
+    if case.spec is None:
+        raise ValueError(f"synthetic bench case {case.name!r} has no spec")
     if not (seq_dir / "synth.json").is_file():
         generate_sequence(seq_dir, SynthSpec(**case.spec))
     return seq_dir
@@ -95,6 +97,7 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) ->
     logging.basicConfig(level=logging.ERROR)
     from .app import run_job, wheel_only_trajectory
     from .config import config_from_dict
+    from .errors import SequenceError
     from .eval.baselines import essential_chaining
     from .eval.metrics import evaluate, plot_trajectories
     data: dict = {"progress": False, "viz": {"rerun": "save" if rerun else "off"}}
@@ -122,15 +125,20 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) ->
         "windowvo": _acc_row(rep.accuracy),
     }
     seq = rep.sequence
+    gt = seq.groundtruth
+    if gt is None:
+        raise SequenceError(f"bench sequence {case.name!r} has no ground truth")
     wheel = wheel_only_trajectory(seq, r.trajectory.timestamps)
-    row["wheel"] = _acc_row(evaluate(seq.groundtruth, wheel)) if wheel is not None else {}
+    row["wheel"] = _acc_row(evaluate(gt, wheel)) if wheel is not None else {}
     chain = essential_chaining(seq)
-    row["chaining"] = _acc_row(evaluate(seq.groundtruth, chain.trajectory))
+    row["chaining"] = _acc_row(evaluate(gt, chain.trajectory))
     row["chaining_fps"] = chain.fps
     row["chaining_failed_steps"] = chain.n_failed_steps
-    plot_trajectories(out / "trajectories.png", seq.groundtruth,
-                      {"windowvo": r.trajectory, "wheel odometry": wheel, "E-matrix chaining": chain.trajectory},
-                      title=case.name)
+    estimates = {"windowvo": r.trajectory}
+    if wheel is not None:
+        estimates["wheel odometry"] = wheel
+    estimates["E-matrix chaining"] = chain.trajectory
+    plot_trajectories(out / "trajectories.png", gt, estimates, title=case.name)
     return row
 
 
@@ -191,12 +199,12 @@ def bench_frontend(cache: Path, n_frames: int = 300) -> dict:
     out = {}
     for tracker in ("klt", "orb"):
         fe = Frontend(seq.camera, FrontendConfig(tracker=tracker), KeyframeConfig(), GateConfig())
-        ms = []
+        ms_list: list[float] = []
         for i, im in enumerate(imgs):
             t0 = time.perf_counter()
             fe.process(Frame(i, float(seq.timestamps[i]), im))
-            ms.append((time.perf_counter() - t0) * 1000)
-        ms = np.asarray(ms[1:])
+            ms_list.append((time.perf_counter() - t0) * 1000)
+        ms = np.asarray(ms_list[1:])
         out[tracker] = {"frames": len(ms), "mean_ms": float(ms.mean()), "median_ms": float(np.median(ms)),
                         "p95_ms": float(np.percentile(ms, 95)), "fps": float(1000.0 / ms.mean())}
     return out
@@ -220,7 +228,9 @@ def bench_backend(n_keyframes: int = 5000) -> dict:
                            keyframe_spacing_m=spacing)
     cfg = BackendConfig(window_keyframes=20)
     be = SlidingWindowBackend(fs.world.camera, cfg, use_odometry=True)
-    ms, rss, lms = [], {}, []
+    ms_list: list[float] = []
+    rss: dict[int, float] = {}
+    lms: list[int] = []
     kfs = fs.keyframes[:n_keyframes]
     for i, fo in enumerate(kfs):
         odom = None
@@ -228,11 +238,11 @@ def bench_backend(n_keyframes: int = 5000) -> dict:
             t0, t1 = kfs[i - 1].timestamp, fo.timestamp
             odom = OdometryStep(fs.odometry.delta(t0, t1), fs.odometry.distance(t0, t1))
         bo = be.add_keyframe(fo, odom)
-        ms.append(bo.backend_ms)
+        ms_list.append(bo.backend_ms)
         lms.append(bo.n_landmarks)
         if i + 1 in (500, 1000, 2000, len(kfs)):
             rss[i + 1] = _rss_now_mb()
-    ms = np.asarray(ms)
+    ms = np.asarray(ms_list)
     return {"keyframes": len(kfs), "window": cfg.window_keyframes, "landmarks_median": float(np.median(lms)),
             "observations_per_keyframe": float(np.mean([len(f.track_ids) for f in kfs])),
             "median_ms": float(np.median(ms)), "p95_ms": float(np.percentile(ms, 95)),

@@ -9,13 +9,14 @@ frame ``a``, so ``p_a = T_a_b @ p_b`` and ``T_a_c = T_a_b @ T_b_c``. Frames: ``w
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 # Rotation that maps camera-axis vectors (x right, y down, z forward) into base axes
 # (x forward, y left, z up) for a camera looking straight ahead.
 R_BASE_CAM_FORWARD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
-def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+def make_T(R: npt.ArrayLike, t: npt.ArrayLike) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = np.asarray(t, dtype=float).reshape(3)

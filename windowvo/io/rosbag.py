@@ -32,7 +32,7 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -45,6 +45,9 @@ from .bagsalvage import Damage, SalvageConnection, scan_mcap, scan_ros1, scan_sq
 from .odometry import WheelOdometry
 from .sequence import StreamedSequence, check_odometry_overlap
 from .trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from rosbags.typesys.store import Typestore
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +122,7 @@ class BagReader:
         self.is2 = not (self.path.is_file() and self.path.suffix == ".bag")
         self._any: Any = None
         self._salvage: list[SalvageConnection] | None = None
-        self._typestore = None
+        self._typestore: Typestore | None = None
         if not self.path.exists():
             raise SequenceError(f"bag not found: {self.path}")
         if self.path.is_dir() and not (self.path / "metadata.yaml").is_file():
@@ -190,7 +193,7 @@ class BagReader:
             t.ids.append(c.cid)
         self._typestore = self._salvage_typestore()
 
-    def _salvage_typestore(self):
+    def _salvage_typestore(self) -> Typestore:
         from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
         store = get_typestore(Stores.ROS2_HUMBLE if self.is2 else Stores.ROS1_NOETIC)
