@@ -6,7 +6,6 @@ import pytest
 
 from windowvo.backend import factors as fac
 from windowvo.backend.smoother import SlidingWindowBackend, X
-from windowvo.camera import CameraModel
 from windowvo.config import BackendConfig
 from windowvo.eval.metrics import evaluate
 from windowvo.geometry import R_to_rpy, make_T, rpy_to_R

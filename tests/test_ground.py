@@ -29,7 +29,7 @@ def test_robust_thresholds_are_chi_square_quantiles():
 
 def _numerical_jacobians(factor, values: gtsam.Values, eps: float = 1e-6) -> list[np.ndarray]:
     out = []
-    for key in factor.keys():
+    for key in factor:
         dims = 6 if values.exists(key) and key in (X(0), X(1)) else None
         if dims is None:
             dims = 2 if gtsam.Symbol(key).chr() == ord("c") else 3
@@ -57,7 +57,7 @@ def _analytic_jacobians(factor, values: gtsam.Values) -> list[np.ndarray]:
     A, _ = lin.jacobian()
     sigmas = factor.noiseModel().sigmas() if hasattr(factor.noiseModel(), "sigmas") else None
     out, col = [], 0
-    for key in factor.keys():
+    for key in factor:
         d = values.atPose3(key).localCoordinates(values.atPose3(key)).size if gtsam.Symbol(key).chr() == ord("x") else (
             2 if gtsam.Symbol(key).chr() == ord("c") else 3)
         block = A[:, col:col + d]
@@ -83,7 +83,7 @@ def test_calibrated_wheel_factor_residual_and_jacobians():
     dist = float(np.hypot(D[0, 3], D[1, 3]))
     # Wheels that over-report distance by 2 % and add 0.01 rad of yaw per metre: zero residual at c = (1.02, 0.01).
     meas = make_T(rpy_to_R(0, 0, yaw + 0.01 * dist), [1.02 * D[0, 3], 1.02 * D[1, 3], 0.0])
-    f = [g for g in fac.odometry_factors(cfg, 1, meas, dist, calibrate=True) if isinstance(g, gtsam.CustomFactor)][0]
+    f = next(g for g in fac.odometry_factors(cfg, 1, meas, dist, calibrate=True) if isinstance(g, gtsam.CustomFactor))
     assert np.abs(f.unwhitenedError(v)).max() < 1e-9
     v_wrong = _values(c=(1.0, 0.0))
     err = f.unwhitenedError(v_wrong)

@@ -177,7 +177,8 @@ def planar_odometry_sigmas(cfg: BackendConfig, distance: float, yaw: float) -> t
     return s_xy, s_yaw
 
 
-def odometry_factors(cfg: BackendConfig, k: int, T_prev_cur: np.ndarray, distance: float, calibrate: bool) -> list:
+def odometry_factors(cfg: BackendConfig, k: int, T_prev_cur: np.ndarray, distance: float,
+                     calibrate: bool) -> list[gtsam.NonlinearFactor]:
     """Wheel odometry between keyframes k-1 and k, as two parts of one measurement.
 
     The planar part (x, y, yaw) is what wheels measure: tight, growing with distance, under the
@@ -193,7 +194,7 @@ def odometry_factors(cfg: BackendConfig, k: int, T_prev_cur: np.ndarray, distanc
     meas = gtsam.Pose3(T_prev_cur)
     vertical = gtsam.noiseModel.Diagonal.Sigmas(
         np.array([o.roll_pitch_sigma_rad, o.roll_pitch_sigma_rad, FREE_SIGMA, FREE_SIGMA, FREE_SIGMA, o.z_sigma_m]))
-    out = [gtsam.BetweenFactorPose3(X(k - 1), X(k), meas, vertical)]
+    out: list[gtsam.NonlinearFactor] = [gtsam.BetweenFactorPose3(X(k - 1), X(k), meas, vertical)]
     if calibrate:
         noise = robust(gtsam.noiseModel.Diagonal.Sigmas(np.array([s_yaw, s_xy, s_xy])), o.robust, k_planar)
         m = np.array([T_prev_cur[0, 3], T_prev_cur[1, 3], yaw])
