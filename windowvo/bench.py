@@ -3,10 +3,15 @@
 Suites:
 
 * ``sequences`` (default): rendered synthetic sequences (loop, figure eight with vibration,
-  ramp, stop-and-go, wheel slip) and the KITTI excerpts in ``../shared/data`` when present.
-  For each: windowvo and, in the same run, wheel odometry alone and frame-to-frame
-  essential-matrix chaining scaled by wheel distance. Prints a markdown table, writes
-  ``bench.json`` and a PNG per sequence overlaying the trajectories.
+  ramp, stop-and-go, wheel slip, and loops whose wheels report 2% too much and 3% too little
+  distance) and the KITTI excerpts in ``../shared/data`` when present (synthetic wheels with a
+  1% and with a 2% scale error). None of the wheel errors is told to the estimator.
+  For each: windowvo (its smoothed and its causal, online trajectory), windowvo a second
+  time without the ground-plane cue and without online wheel calibration (the behaviour
+  before the metric-scale work; back-end time of both runs, so the cue's cost shows), and,
+  in the same process, wheel odometry alone and frame-to-frame essential-matrix chaining
+  scaled by wheel distance. Prints a markdown table, writes ``bench.json`` and a PNG per
+  sequence overlaying the trajectories.
 * ``frontend``: front-end time per 640x480 frame on preloaded images.
 * ``backend``: back-end time per keyframe (median, p95) on feature-level data with a
   20-keyframe window, and resident memory after 500 and after N keyframes.
@@ -36,12 +41,29 @@ import numpy as np
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
+# The run "without ground cue": windowvo as it was before the metric-scale work (#11).
+NO_GROUND_CUE: dict = {"backend": {"ground": {"enabled": False}, "wheel_calibration": {"enabled": False}}}
+# Synthetic wheels on KITTI (no wheels there): the earlier bench setting and the issue's (#11).
+KITTI_WHEEL_SCALE_ERRORS = (0.01, 0.02)
+KITTI_WHEEL_YAW_BIAS_PER_M = 0.005
+
+
 @dataclass
 class SeqCase:
     name: str
     kind: str  # synth | kitti
     spec: dict | None = None
     path: Path | None = None
+    kitti_wheel_scale_error: float = 0.01  # KITTI only: scale error of the synthetic wheels
+
+    @property
+    def wheel_scale_error(self) -> float:
+        """The wheels' distance scale error (reported = (1 + e) * true); the estimator is not told."""
+        if self.kind == "kitti":
+            return self.kitti_wheel_scale_error
+        from .synth.generate import WheelErrorModel
+
+        return float((self.spec or {}).get("wheel", WheelErrorModel()).scale_error)
 
 
 def synthetic_cases(duration: float) -> list[SeqCase]:
@@ -56,14 +78,21 @@ def synthetic_cases(duration: float) -> list[SeqCase]:
         SeqCase("stop_and_go", "synth", dict(path=PathKind.STOP_AND_GO, duration_s=duration, seed=34, image_noise=1.0)),
         SeqCase("wheel_slip", "synth", dict(path=PathKind.LOOP, duration_s=duration, seed=35,
                                             wheel=WheelErrorModel(slip_windows=[(8.0, 10.0, 0.4), (20.0, 21.5, 0.5)]))),
+        SeqCase("loop_wheels+2pct", "synth", dict(path=PathKind.LOOP, duration_s=duration, seed=36,
+                                                  wheel=WheelErrorModel(scale_error=0.02))),
+        SeqCase("loop_wheels-3pct", "synth", dict(path=PathKind.LOOP, duration_s=duration, seed=37,
+                                                  wheel=WheelErrorModel(scale_error=-0.03))),
     ]
 
 
 def kitti_cases() -> list[SeqCase]:
+    """Each excerpt once per synthetic wheel scale error (the first keeps the excerpt's name)."""
     out = []
     for name in ("kitti06_000-050", "kitti01_000-050"):
         if (SHARED_DATA / name).is_dir():
-            out.append(SeqCase(name, "kitti", path=SHARED_DATA / name))
+            for i, err in enumerate(KITTI_WHEEL_SCALE_ERRORS):
+                case_name = name if i == 0 else f"{name}_wheels{100 * err:+.0f}pct"
+                out.append(SeqCase(case_name, "kitti", path=SHARED_DATA / name, kitti_wheel_scale_error=err))
     return out
 
 
@@ -74,8 +103,29 @@ def _peak_rss_mb() -> float:
 def _acc_row(acc) -> dict:
     if acc is None:
         return {}
-    return {"ate_se3_m": acc.ate_se3_rmse_m, "ate_sim3_m": acc.ate_sim3_rmse_m, "rpe_m_per_m": acc.rpe_trans_per_m,
+    return {"ate_se3_m": float("nan") if acc.monocular else acc.ate_se3_rmse_m, "ate_sim3_m": acc.ate_sim3_rmse_m,
+            "sim3_scale": acc.sim3_scale, "rpe_m_per_m": acc.rpe_trans_per_m,
             "end_drift_pct": acc.end_drift_pct, "path_m": acc.path_length_m}
+
+
+def _median(ms: list[float]) -> float:
+    return float(np.median(ms)) if ms else float("nan")
+
+
+def _scale_row(r) -> dict:
+    """What fixed a run's scale and, with online calibration, the wheels' final estimate."""
+    c = r.wheel_calibration
+    return {"metric": r.metric, "scale_sources": list(r.scale_sources),
+            "wheel_calibration": None if c is None else {
+                "scale": c.scale, "scale_sigma": c.scale_sigma,
+                "yaw_bias_per_m": c.yaw_bias_per_m, "yaw_bias_sigma": c.yaw_bias_sigma}}
+
+
+def _deep_merge(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
 
 
 def ensure_rendered(case: SeqCase, cache: Path) -> Path:
@@ -90,8 +140,23 @@ def ensure_rendered(case: SeqCase, cache: Path) -> Path:
     return seq_dir
 
 
+def case_config_data(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) -> dict:
+    """The config mapping of a case's run with the ground cue (the defaults); renders a synthetic case."""
+    data: dict = {"progress": False, "viz": {"rerun": "save" if rerun else "off"}}
+    if case.kind == "synth":
+        seq_dir = ensure_rendered(case, cache)
+        data["sequence"] = str(seq_dir)
+    else:
+        data.update(sequence=str(case.path), dataset="kitti",
+                    odometry_synthesis={"enabled": True, "scale_error": case.kitti_wheel_scale_error,
+                                        "yaw_bias_per_m": KITTI_WHEEL_YAW_BIAS_PER_M})
+    data["output"] = str(out_root / case.name)
+    return data
+
+
 def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) -> dict:
-    """One sequence: windowvo and both baselines (runs in a worker process)."""
+    """One sequence (runs in a worker process): windowvo, windowvo without the ground cue and
+    online wheel calibration (``NO_GROUND_CUE``, outputs in ``no_ground_cue/``), both baselines."""
     import logging
 
     logging.basicConfig(level=logging.ERROR)
@@ -100,30 +165,45 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) ->
     from .errors import SequenceError
     from .eval.baselines import essential_chaining
     from .eval.metrics import evaluate, plot_trajectories
-    data: dict = {"progress": False, "viz": {"rerun": "save" if rerun else "off"}}
-    if case.kind == "synth":
-        seq_dir = ensure_rendered(case, cache)
-        data["sequence"] = str(seq_dir)
-    else:
-        data.update(sequence=str(case.path), dataset="kitti",
-                    odometry_synthesis={"enabled": True, "scale_error": 0.01, "yaw_bias_per_m": 0.005})
+    data = case_config_data(case, cache, out_root, rerun)
     out = out_root / case.name
-    data["output"] = str(out)
     cfg = config_from_dict(data)
     rep = run_job(cfg)
     r = rep.result
-    row = {
+    row: dict = {
         "sequence": case.name,
+        "kind": case.kind,
+        "wheel_scale_error": case.wheel_scale_error,
         "frames": r.n_frames,
         "keyframes": r.n_keyframes,
         "fps": r.fps,
         "frontend_ms_mean": float(np.mean(r.frontend_ms)) if r.frontend_ms else float("nan"),
-        "backend_ms_median": float(np.median(r.backend_ms)) if r.backend_ms else float("nan"),
+        "backend_ms_median": _median(r.backend_ms),
         "backend_ms_p95": float(np.percentile(r.backend_ms, 95)) if r.backend_ms else float("nan"),
-        "peak_rss_mb": _peak_rss_mb(),
+        "peak_rss_mb": _peak_rss_mb(),  # before the second run, so it is this run's
         "resets": r.n_resets,
         "windowvo": _acc_row(rep.accuracy),
+        "windowvo_online": _acc_row(rep.online_accuracy),
+        "scale": _scale_row(r),
     }
+    # The same sequence without the ground cue and without online wheel calibration.
+    cfg_nc = config_from_dict(_deep_merge(data, {**NO_GROUND_CUE, "output": str(out / "no_ground_cue"),
+                                                 "viz": {"rerun": "off"}}))
+    rep_nc = run_job(cfg_nc)
+    r_nc = rep_nc.result
+    row["no_ground_cue"] = {
+        "frames": r_nc.n_frames,
+        "keyframes": r_nc.n_keyframes,
+        "fps": r_nc.fps,
+        "backend_ms_median": _median(r_nc.backend_ms),
+        "backend_ms_p95": float(np.percentile(r_nc.backend_ms, 95)) if r_nc.backend_ms else float("nan"),
+        "resets": r_nc.n_resets,
+        "windowvo": _acc_row(rep_nc.accuracy),
+        "windowvo_online": _acc_row(rep_nc.online_accuracy),
+        "scale": _scale_row(r_nc),
+    }
+    base_ms = row["no_ground_cue"]["backend_ms_median"]
+    row["backend_cue_cost_pct"] = 100.0 * (row["backend_ms_median"] / base_ms - 1.0) if base_ms > 0 else float("nan")
     seq = rep.sequence
     gt = seq.groundtruth
     if gt is None:
@@ -135,6 +215,9 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) ->
     row["chaining_fps"] = chain.fps
     row["chaining_failed_steps"] = chain.n_failed_steps
     estimates = {"windowvo": r.trajectory}
+    if r.trajectory_online is not None:
+        estimates["windowvo online (causal)"] = r.trajectory_online
+    estimates["windowvo without ground cue"] = r_nc.trajectory
     if wheel is not None:
         estimates["wheel odometry"] = wheel
     estimates["E-matrix chaining"] = chain.trajectory
@@ -142,25 +225,74 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) ->
     return row
 
 
-def sequences_table(rows: list[dict]) -> str:
-    head = ("| sequence | method | frames | fps | front-end ms/frame | back-end ms/kf (median / p95) | peak RSS MB "
-            "| ATE SE(3) m | ATE Sim(3) m | RPE m/m | end drift % |")
-    lines = [head, "|" + "---|" * 11]
+SEQUENCE_COLUMNS = (
+    "sequence", "method", "frames", "fps", "front-end ms/frame", "back-end ms/kf (median / p95)",
+    "back-end ms/kf median without ground cue (cue cost)", "peak RSS MB", "ATE SE(3) m",
+    "online (causal) ATE SE(3) m", "ATE SE(3) without ground cue m", "ATE Sim(3) m", "RPE m/m", "end drift %",
+    "wheel scale error: true / estimated",
+)
+
+
+def _f(v, fmt: str) -> str:
+    """A number for the table; blank when missing or not finite."""
+    if v is None or not np.isfinite(v):
+        return ""
+    return format(v, fmt)
+
+
+def sequences_caption(rows: list[dict]) -> str:
+    """Which wheels each sequence had (none of this is told to the estimator) and what the columns compare."""
+    groups: dict[tuple[str, float], list[str]] = {}
     for r in rows:
+        groups.setdefault((r.get("kind", "synth"), r["wheel_scale_error"]), []).append(r["sequence"])
+    parts = []
+    for (kind, err), names in sorted(groups.items(), key=lambda kv: (kv[0][0] != "synth", kv[0][1])):
+        what = ("rendered wheels" if kind == "synth" else
+                f"KITTI, synthetic wheels (yaw bias {KITTI_WHEEL_YAW_BIAS_PER_M} rad/m)")
+        parts.append(f"{what} with a {100 * err:+.0f}% scale error: {', '.join(names)}")
+    return ("Wheel odometry (reported distance = (1 + scale error) x true; the estimator is not told): "
+            + "; ".join(parts) + ". Rendered wheels also drift 0.01 rad/m in heading; wheel_slip adds slip "
+            "windows. \"Without ground cue\": the same sequence run again with backend.ground.enabled=false "
+            "and backend.wheel_calibration.enabled=false (before the metric-scale work); cue cost: back-end "
+            "median with the cue / without - 1. ATE SE(3): the smoothed trajectory (trajectory.txt); online: "
+            "the causal one (trajectory_online.txt). Estimated scale error: the online wheel calibration at the end.")
+
+
+def sequences_table(rows: list[dict]) -> str:
+    lines = ["| " + " | ".join(SEQUENCE_COLUMNS) + " |", "|" + "---|" * len(SEQUENCE_COLUMNS)]
+    names = {"windowvo": "windowvo", "wheel": "wheel odometry", "chaining": "E-matrix chaining"}
+    for r in rows:
+        nc = r.get("no_ground_cue") or {}
         for method in ("windowvo", "wheel", "chaining"):
             a = r.get(method) or {}
+            cells = {c: "" for c in SEQUENCE_COLUMNS}
+            cells.update({"sequence": r["sequence"], "method": names[method], "frames": str(r["frames"])})
             if method == "windowvo":
-                perf = (f"{r['frames']} | {r['fps']:.1f} | {r['frontend_ms_mean']:.2f} | "
-                        f"{r['backend_ms_median']:.1f} / {r['backend_ms_p95']:.1f} | {r['peak_rss_mb']:.0f}")
+                calib: dict | None = (r.get("scale") or {}).get("wheel_calibration")
+                cells.update({
+                    "fps": _f(r["fps"], ".1f"),
+                    "front-end ms/frame": _f(r["frontend_ms_mean"], ".2f"),
+                    "back-end ms/kf (median / p95)": f"{_f(r['backend_ms_median'], '.1f')} / "
+                                                     f"{_f(r['backend_ms_p95'], '.1f')}",
+                    "back-end ms/kf median without ground cue (cue cost)":
+                        f"{_f(nc.get('backend_ms_median'), '.1f')} ({_f(r.get('backend_cue_cost_pct'), '+.0f')}%)"
+                        if nc else "",
+                    "peak RSS MB": _f(r["peak_rss_mb"], ".0f"),
+                    "online (causal) ATE SE(3) m": _f((r.get("windowvo_online") or {}).get("ate_se3_m"), ".3f"),
+                    "ATE SE(3) without ground cue m": _f((nc.get("windowvo") or {}).get("ate_se3_m"), ".3f"),
+                    "wheel scale error: true / estimated":
+                        f"{100 * r['wheel_scale_error']:+.1f}% / "
+                        + (f"{100 * (calib['scale'] - 1.0):+.1f}%" if calib else "-"),
+                })
             elif method == "chaining":
-                perf = f"{r['frames']} | {r['chaining_fps']:.1f} | | |"
-            else:
-                perf = f"{r['frames']} | | | |"
-            name = {"windowvo": "windowvo", "wheel": "wheel odometry", "chaining": "E-matrix chaining"}[method]
-            lines.append(
-                f"| {r['sequence']} | {name} | {perf} | {a.get('ate_se3_m', float('nan')):.3f} | "
-                f"{a.get('ate_sim3_m', float('nan')):.3f} | {a.get('rpe_m_per_m', float('nan')):.3f} | "
-                f"{a.get('end_drift_pct', float('nan')):.2f} |")
+                cells["fps"] = _f(r["chaining_fps"], ".1f")
+            cells.update({
+                "ATE SE(3) m": _f(a.get("ate_se3_m"), ".3f"),
+                "ATE Sim(3) m": _f(a.get("ate_sim3_m"), ".3f"),
+                "RPE m/m": _f(a.get("rpe_m_per_m"), ".3f"),
+                "end drift %": _f(a.get("end_drift_pct"), ".2f"),
+            })
+            lines.append("| " + " | ".join(cells[c] for c in SEQUENCE_COLUMNS) + " |")
     return "\n".join(lines)
 
 
@@ -401,6 +533,7 @@ def main(argv=None) -> int:
         rows = run_cases_in_processes(cases, cache, out, a.jobs)
         results["sequences"] = rows
         print("## Sequences\n")
+        print(sequences_caption(rows) + "\n")
         print(sequences_table(rows))
         print()
     if "frontend" in a.suite:

@@ -1,0 +1,113 @@
+"""The bench's ``sequences`` suite: runs with and without the ground cue, online accuracy, wheel errors."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from windowvo import bench
+from windowvo.app import load_sequence
+from windowvo.config import config_from_dict
+from windowvo.eval.metrics import evaluate
+from windowvo.io.sequence import load_native
+from windowvo.io.trajectory import read_tum
+from windowvo.types import ScaleSource
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def _path_length(positions: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(positions[:, :2], axis=0), axis=1).sum())
+
+
+def _wheel_over_true_distance(seq) -> float:
+    odo, gt = seq.odometry, seq.groundtruth
+    return odo.distance(float(gt.timestamps[0]), float(gt.timestamps[-1])) / _path_length(gt.positions)
+
+
+def test_bench_case_with_and_without_ground_cue(tmp_path):
+    case = next(c for c in bench.synthetic_cases(5.0) if c.name == "loop_wheels-3pct")
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    row = bench.run_case(case, cache, out)
+
+    # The rendered wheels report 3% too little distance (nothing in the config says so).
+    seq = load_native(cache / case.name)
+    assert _wheel_over_true_distance(seq) == pytest.approx(0.97, abs=0.005)
+    assert row["wheel_scale_error"] == pytest.approx(-0.03)
+
+    # First run: the defaults (ground cue and online calibration); second: neither.
+    assert ScaleSource.GROUND_PLANE.value in row["scale"]["scale_sources"]
+    assert ScaleSource.WHEELS_CALIBRATED.value in row["scale"]["scale_sources"]
+    assert row["scale"]["wheel_calibration"] is not None
+    nc = row["no_ground_cue"]
+    assert nc["scale"]["scale_sources"] == [ScaleSource.WHEELS.value]
+    assert nc["scale"]["wheel_calibration"] is None
+    assert nc["frames"] == row["frames"]
+
+    # Each accuracy in the row is that of the file it names, scored against ground truth here.
+    gt = seq.groundtruth
+    run_dir = out / case.name
+    for acc, traj in ((row["windowvo"], run_dir / "trajectory.txt"),
+                      (row["windowvo_online"], run_dir / "trajectory_online.txt"),
+                      (nc["windowvo"], run_dir / "no_ground_cue" / "trajectory.txt"),
+                      (nc["windowvo_online"], run_dir / "no_ground_cue" / "trajectory_online.txt")):
+        assert acc["ate_se3_m"] == pytest.approx(evaluate(gt, read_tum(traj)).ate_se3_rmse_m, rel=1e-3, abs=1e-5)
+    assert row["windowvo"]["ate_se3_m"] != nc["windowvo"]["ate_se3_m"]
+    assert (run_dir / "trajectories.png").is_file()
+    assert row["backend_ms_median"] > 0 and nc["backend_ms_median"] > 0
+
+
+def _row(name: str, kind: str, err: float) -> dict:
+    acc = {"ate_se3_m": 0.111, "ate_sim3_m": 0.05, "rpe_m_per_m": 0.02, "end_drift_pct": 1.5}
+    return {
+        "sequence": name, "kind": kind, "wheel_scale_error": err, "frames": 100, "fps": 50.0,
+        "frontend_ms_mean": 4.0, "backend_ms_median": 12.0, "backend_ms_p95": 20.0, "peak_rss_mb": 200.0,
+        "windowvo": acc, "windowvo_online": {**acc, "ate_se3_m": 0.222},
+        "scale": {"wheel_calibration": {"scale": 0.975}},
+        "no_ground_cue": {"backend_ms_median": 10.0, "windowvo": {**acc, "ate_se3_m": 0.333}},
+        "backend_cue_cost_pct": 20.0,
+        "wheel": {**acc, "ate_se3_m": 0.444}, "chaining": {**acc, "ate_se3_m": 0.555}, "chaining_fps": 30.0,
+    }
+
+
+def test_sequences_table_columns():
+    rows = [_row("loop_wheels-3pct", "synth", -0.03), _row("kitti06_000-050_wheels+2pct", "kitti", 0.02)]
+    lines = bench.sequences_table(rows).splitlines()
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    assert len(lines) == 2 + 3 * len(rows)
+    cells = [dict(zip(header, (c.strip() for c in ln.strip("|").split("|")), strict=True)) for ln in lines[2:]]
+    vo, wheel, chain = cells[0], cells[1], cells[2]
+    assert (vo["method"], wheel["method"], chain["method"]) == ("windowvo", "wheel odometry", "E-matrix chaining")
+    assert vo["ATE SE(3) m"] == "0.111"
+    assert vo["online (causal) ATE SE(3) m"] == "0.222"
+    assert vo["ATE SE(3) without ground cue m"] == "0.333"
+    assert vo["back-end ms/kf (median / p95)"] == "12.0 / 20.0"
+    assert vo["back-end ms/kf median without ground cue (cue cost)"] == "10.0 (+20%)"
+    assert vo["wheel scale error: true / estimated"] == "-3.0% / -2.5%"
+    assert wheel["ATE SE(3) m"] == "0.444" and chain["ATE SE(3) m"] == "0.555"
+    # The baselines have no online or no-cue variant: those cells are blank.
+    assert wheel["online (causal) ATE SE(3) m"] == "" and chain["ATE SE(3) without ground cue m"] == ""
+    caption = bench.sequences_caption(rows)
+    assert "rendered wheels with a -3% scale error: loop_wheels-3pct" in caption
+    assert "+2% scale error: kitti06_000-050_wheels+2pct" in caption
+
+
+def test_bench_rendered_cases_include_unknown_wheel_scale_errors():
+    errors = {c.name: c.wheel_scale_error for c in bench.synthetic_cases(30.0)}
+    assert errors["loop_wheels+2pct"] == pytest.approx(0.02)
+    assert errors["loop_wheels-3pct"] == pytest.approx(-0.03)
+    assert {"loop", "figure_eight_vibration", "ramp", "stop_and_go", "wheel_slip"} <= set(errors)
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "kitti06_000-050").is_dir(), reason="KITTI excerpts not in ../shared/data")
+def test_bench_kitti_cases_synthetic_wheels(tmp_path):
+    cases = [c for c in bench.kitti_cases() if c.path == SHARED_DATA / "kitti06_000-050"]
+    assert [c.name for c in cases] == ["kitti06_000-050", "kitti06_000-050_wheels+2pct"]
+    for case, expected in zip(cases, (1.01, 1.02), strict=True):
+        seq = load_sequence(config_from_dict(bench.case_config_data(case, tmp_path, tmp_path)))
+        assert seq.odometry is not None and seq.odometry.synthetic
+        ratio = _wheel_over_true_distance(seq)
+        assert math.isclose(ratio, expected, abs_tol=0.005), (case.name, ratio)
