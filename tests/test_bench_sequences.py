@@ -111,3 +111,17 @@ def test_bench_kitti_cases_synthetic_wheels(tmp_path):
         assert seq.odometry is not None and seq.odometry.synthetic
         ratio = _wheel_over_true_distance(seq)
         assert math.isclose(ratio, expected, abs_tol=0.005), (case.name, ratio)
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="needs Linux /proc")
+def test_bench_peak_rss_is_the_worker_own():
+    # A worker started by a process that once held 300 MB reports its own (small) peak.
+    import subprocess
+    import sys
+
+    block = bytearray(300 * 2**20)
+    block[:: 4096] = b"\x01" * len(block[:: 4096])
+    code = "from windowvo.bench import _peak_rss_mb; print(_peak_rss_mb())"
+    peak = float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
+    del block
+    assert 5.0 < peak < 150.0

@@ -97,6 +97,18 @@ def kitti_cases() -> list[SeqCase]:
 
 
 def _peak_rss_mb() -> float:
+    """Peak resident memory of this process image (Linux ``VmHWM``).
+
+    Not ``getrusage``: its ``ru_maxrss`` survives fork and exec, so a worker started by the
+    bench would report the bench's own peak (e.g. from rendering) whenever that is larger.
+    """
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
