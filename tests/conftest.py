@@ -33,7 +33,9 @@ def short_loop(seq_factory) -> Path:
 
 
 def make_config(seq: Path, out: Path, **sections):
-    data = {"sequence": str(seq), "output": str(out), "progress": False, "viz": {"rerun": "off"}}
+    # Sequential by default: the deterministic one-process mode (the pipelined mode is tested against it).
+    data = {"sequence": str(seq), "output": str(out), "progress": False, "viz": {"rerun": "off"},
+            "run_mode": "sequential"}
     for k, v in sections.items():
         if isinstance(v, dict):
             data.setdefault(k, {}).update(v)

@@ -29,7 +29,7 @@ def test_robust_thresholds_are_chi_square_quantiles():
 
 def _numerical_jacobians(factor, values: gtsam.Values, eps: float = 1e-6) -> list[np.ndarray]:
     out = []
-    for key in factor:
+    for key in list(factor.keys()):
         dims = 6 if values.exists(key) and key in (X(0), X(1)) else None
         if dims is None:
             dims = 2 if gtsam.Symbol(key).chr() == ord("c") else 3
@@ -57,7 +57,7 @@ def _analytic_jacobians(factor, values: gtsam.Values) -> list[np.ndarray]:
     A, _ = lin.jacobian()
     sigmas = factor.noiseModel().sigmas() if hasattr(factor.noiseModel(), "sigmas") else None
     out, col = [], 0
-    for key in factor:
+    for key in list(factor.keys()):
         d = values.atPose3(key).localCoordinates(values.atPose3(key)).size if gtsam.Symbol(key).chr() == ord("x") else (
             2 if gtsam.Symbol(key).chr() == ord("c") else 3)
         block = A[:, col:col + d]

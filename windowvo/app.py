@@ -14,11 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import Config, RerunMode
+from .config import Config, RerunMode, RunMode
 from .errors import WindowVOError
 from .eval.metrics import AccuracyReport
 from .io.sequence import Sequence
 from .io.trajectory import Trajectory
+from .parallel import BackendWorker
 from .pipeline import Pipeline, RunResult, write_outputs
 
 log = logging.getLogger("windowvo")
@@ -57,11 +58,21 @@ def make_viewer(cfg: Config, seq: Sequence):
 
 
 def run_job(cfg: Config, progress=None) -> JobReport:
+    # Pipelined: spawn the back-end process first, so its start overlaps with loading the sequence.
+    worker = BackendWorker() if cfg.run_mode is RunMode.PIPELINED else None
+    try:
+        return _run_job(cfg, progress, worker)
+    finally:
+        if worker is not None:
+            worker.close()
+
+
+def _run_job(cfg: Config, progress, worker: BackendWorker | None) -> JobReport:
     seq = load_sequence(cfg)
     for w in seq.warnings:
         log.warning("%s", w)
     viewer = make_viewer(cfg, seq)
-    pipe = Pipeline(cfg, seq, viewer=viewer, progress=progress)
+    pipe = Pipeline(cfg, seq, viewer=viewer, progress=progress, worker=worker)
     be = pipe.backend
     ground = (f"the floor at the camera height ({be.camera_height_m:.3f} m above it)" if be.use_ground
               else "no ground cue")
@@ -150,6 +161,7 @@ def run_and_report(cfg: Config) -> RunResult:
         "frontend_ms_mean": round(float(np.mean(r.frontend_ms)), 3) if r.frontend_ms else None,
         "backend_ms_median": round(float(np.median(r.backend_ms)), 3) if r.backend_ms else None,
         "backend_resets": r.n_resets,
+        "run_mode": cfg.run_mode.value,
         "monocular": r.monocular,
         "metric": r.metric,
         "scale_sources": r.scale_sources,

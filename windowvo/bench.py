@@ -452,6 +452,58 @@ def _rerun_job(seq_dir: str, out: str, on: bool) -> dict:
     return row
 
 
+def _mode_job(seq_dir: str, out: str, mode: str, rerun: str) -> dict:
+    """One whole job in a fresh process: end-to-end fps of a run mode, and its trajectory file."""
+    import logging
+
+    logging.basicConfig(level=logging.ERROR)
+    from .app import run_job
+    from .config import config_from_dict
+
+    cfg = config_from_dict({"sequence": seq_dir, "output": out, "progress": False, "run_mode": mode,
+                            "viz": {"rerun": rerun}})
+    rep = run_job(cfg)
+    r = rep.result
+    return {"mode": mode, "rerun": rerun, "frames": r.n_frames, "keyframes": r.n_keyframes, "fps": r.fps,
+            "backend_ms_median": float(np.median(r.backend_ms)) if r.backend_ms else float("nan"),
+            "ate_se3_m": rep.accuracy.ate_se3_rmse_m if rep.accuracy is not None else float("nan"),
+            "trajectory": (Path(out) / "trajectory.txt").read_text()}
+
+
+def _chaining_fps(seq_dir: str) -> float:
+    from .eval.baselines import essential_chaining
+    from .io.sequence import load_native
+
+    return float(essential_chaining(load_native(Path(seq_dir))).fps)
+
+
+def bench_modes(cache: Path, out_root: Path, repeats: int = 3) -> dict:
+    """End-to-end fps of the pipelined and the sequential run on the 30 s loop (default config, with and
+    without the Rerun recording), each job in a fresh process, alternated, fastest of ``repeats``; the
+    chaining baseline's fps on the same sequence; and whether the trajectories are identical."""
+    case = synthetic_cases(30.0)[0]
+    seq_dir = str(ensure_rendered(case, cache))
+    res: dict = {}
+    for rerun in ("save", "off"):
+        runs: dict[str, list[dict]] = {"sequential": [], "pipelined": []}
+        for _ in range(repeats):
+            for mode in ("sequential", "pipelined"):
+                with ProcessPoolExecutor(max_workers=1) as ex:
+                    runs[mode].append(ex.submit(_mode_job, seq_dir, str(out_root / f"mode_{mode}_{rerun}"), mode,
+                                                rerun).result())
+        best = {m: max(v, key=lambda r: r["fps"]) for m, v in runs.items()}
+        res[rerun] = {
+            "sequential": {k: v for k, v in best["sequential"].items() if k != "trajectory"},
+            "pipelined": {k: v for k, v in best["pipelined"].items() if k != "trajectory"},
+            "speedup": best["pipelined"]["fps"] / best["sequential"]["fps"],
+            "identical": all(r["trajectory"] == runs["sequential"][0]["trajectory"]
+                             for v in runs.values() for r in v),
+        }
+    with ProcessPoolExecutor(max_workers=1) as ex:
+        res["chaining_fps"] = ex.submit(_chaining_fps, seq_dir).result()
+    return res
+
+
 def bench_rerun(cache: Path, out_root: Path, repeats: int = 3) -> dict:
     """Cost of the Rerun recording (image on every frame, JPEG) on the 30 s loop: whole jobs with the
     recording off and on, alternated, each in a fresh process; the fastest of ``repeats`` counts
@@ -522,7 +574,7 @@ def bench_bag(cache: Path, out_root: Path, factor: int = 10, storage: str = "mca
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m windowvo.bench", description=__doc__.splitlines()[0].strip("`"),
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun", "memory", "bag"])
+    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun", "memory", "bag", "modes"])
     p.add_argument("--out", default="windowvo_output/bench", help="outputs, JSON and plots")
     p.add_argument("--cache", default="windowvo_output/bench_cache", help="rendered sequences (reused)")
     p.add_argument("--duration", type=float, default=30.0, help="seconds of each synthetic sequence")
@@ -578,6 +630,18 @@ def main(argv=None) -> int:
         print(f"\nwall-time overhead {rr_res['overhead_pct']:.1f}%, CPU overhead {rr_res['cpu_overhead_pct']:.1f}%, "
               f"logger time in the run's thread {rr_res['viewer_busy_pct']:.1f}% of the job, "
               f"{rr_res['kb_per_frame']:.0f} kB per frame\n")
+    if "modes" in a.suite:
+        md = bench_modes(cache, out)
+        results["modes"] = md
+        print("## Run modes (30 s loop, default config; fastest of 3 fresh processes each)\n\n"
+              "| Rerun recording | sequential fps | pipelined fps | speed-up | back-end ms/kf median (seq / pip) | "
+              "identical trajectories | E-matrix chaining fps |\n|---|---|---|---|---|---|---|")
+        for rerun in ("save", "off"):
+            r = md[rerun]
+            print(f"| {rerun} | {r['sequential']['fps']:.1f} | {r['pipelined']['fps']:.1f} | {r['speedup']:.2f}x | "
+                  f"{r['sequential']['backend_ms_median']:.1f} / {r['pipelined']['backend_ms_median']:.1f} | "
+                  f"{'yes' if r['identical'] else 'NO'} | {md['chaining_fps']:.1f} |")
+        print()
     if "memory" in a.suite:
         mem = bench_memory(cache, out)
         results["memory"] = mem

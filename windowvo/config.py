@@ -42,6 +42,11 @@ class RobustKind(str, enum.Enum):
     NONE = "none"
 
 
+class RunMode(str, enum.Enum):
+    SEQUENTIAL = "sequential"  # one process, one frame after the other (tests, debugging)
+    PIPELINED = "pipelined"  # the back end in a worker process beside decoding and the front end
+
+
 class RerunMode(str, enum.Enum):
     OFF = "off"
     SAVE = "save"
@@ -151,7 +156,7 @@ class GroundConfig(_Section):
                                           "height ...")
     inlier_range_fraction: float = Field(0.005, ge=0, description="... plus this share of the point's range")
     min_points: int = Field(8, ge=3, description="floor points needed to accept a plane")
-    max_landmarks: int = Field(80, ge=0, le=2000, description="floor landmarks in the window, on top of "
+    max_landmarks: int = Field(120, ge=0, le=2000, description="floor landmarks in the window, on top of "
                                "backend.max_landmarks (they carry the scale)")
     seed: int = Field(0, description="seed of the plane RANSAC (runs are deterministic)")
 
@@ -334,6 +339,8 @@ class Config(_Section):
                                                "layout)")
     max_frames: int | None = Field(None, gt=1, description="stop after this many frames (none: all)")
     progress: bool = Field(True, description="progress bar (on a terminal only)")
+    run_mode: RunMode = Field(RunMode.PIPELINED, description="pipelined: the back end runs in a worker process "
+                              "beside decoding and the front end (both cores, same results); sequential: one process")
     camera: CameraConfig | None = Field(None, description="intrinsics and mounting for layouts that do not carry them "
                                                           "(tum, folder, video); for rosbag it wins over camera_info "
                                                           "and /tf_static")

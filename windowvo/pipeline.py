@@ -16,6 +16,7 @@ import dataclasses
 import logging
 import signal
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,16 +25,19 @@ import cv2
 import numpy as np
 
 from .backend.smoother import WheelCalibration
-from .config import Config, save_config
+from .config import Config, RunMode, save_config
 from .errors import SequenceError
 from .io.provider import DataProvider, SkippedFrame
 from .io.sequence import Sequence
 from .io.trajectory import Trajectory, TumJournal, write_tum
-from .stream import Odometry
-from .types import BackendOutput, FrameRecord, FrontendOutput
+from .parallel import MAX_IN_FLIGHT, BackendWorker
+from .stream import Odometry, TrackedFrame
+from .types import BackendOutput, Frame, FrameRecord, FrontendOutput
 
 log = logging.getLogger(__name__)
 
+# Frames decoded ahead by a thread in pipelined mode.
+PREFETCH_FRAMES = 4
 ONLINE_HEADER = "windowvo causal estimate (each frame's pose as known at that frame's time)"
 
 
@@ -77,7 +81,7 @@ class Pipeline:
     """Runs a sequence through the streaming odometry and collects what the outputs need."""
 
     def __init__(self, cfg: Config, seq: Sequence, viewer=None, progress: Callable | None = None,
-                 journal: bool = True):
+                 journal: bool = True, worker: BackendWorker | None = None):
         self.cfg = cfg
         self.seq = seq
         self.viewer = viewer
@@ -90,9 +94,17 @@ class Pipeline:
         self.use_odometry = self.vo.use_odometry
         self.frontend = self.vo.frontend
         self.backend = self.vo.backend
-        self.provider = DataProvider(seq, cfg.checks, cfg.max_frames, cfg.frontend.mask_folder)
+        pipelined = cfg.run_mode is RunMode.PIPELINED
+        self.provider = DataProvider(seq, cfg.checks, cfg.max_frames, cfg.frontend.mask_folder,
+                                     prefetch=PREFETCH_FRAMES if pipelined else 0)
         self._wheel_next = 0  # next sample of seq.odometry to feed
         self.records: list[FrameRecord] = []
+        # Pipelined: the back end runs in a worker process; frames wait here (in order) for their keyframe.
+        self.worker: BackendWorker | None = None
+        if pipelined:
+            self.worker = worker if worker is not None else BackendWorker()
+            self.worker.start(cam, cfg.backend, self.use_odometry)
+        self._pending: deque[tuple[TrackedFrame, Frame | None]] = deque()
         self._journal = TumJournal(cfg.output / "trajectory_online.txt", ONLINE_HEADER + " (run in progress)") \
             if journal else None
 
@@ -117,11 +129,13 @@ class Pipeline:
         return self.vo.smoothed_trajectory()
 
     def _feed_wheels(self, t: float) -> None:
-        """Give the streaming object every wheel sample up to time t, as a robot's loop would."""
+        """Give the streaming object the wheel samples up to time t and the first one after it, as a robot's
+        loop has them when it handles a frame (wheels report at 50-100 Hz, faster than a frame is processed):
+        the wheel pose at the frame's time is then interpolated, not extrapolated."""
         odo = self.seq.odometry
         if odo is None:
             return
-        end = int(np.searchsorted(odo.timestamps, t, side="right"))
+        end = min(int(np.searchsorted(odo.timestamps, t, side="left")) + 1, len(odo.timestamps))
         for i in range(self._wheel_next, end):
             self.vo.add_wheel_odometry(float(odo.timestamps[i]), float(odo.x[i]), float(odo.y[i]), float(odo.yaw[i]))
         self._wheel_next = max(self._wheel_next, end)
@@ -152,11 +166,20 @@ class Pipeline:
                     self.progress(len(self.frames), len(self.kf_frames))
                 if stop["signal"] is not None:
                     break
+            self._drain(block=True)  # keyframes still with the back-end process
+            if self.worker is not None:
+                self.vo.remote_report = self.worker.finish()
         except KeyboardInterrupt:
             interrupted = True
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
+            if self.worker is not None:
+                self.worker.close()
+        if interrupted and self.worker is not None and self.vo.remote_report is None:
+            # Aborted at once: what the worker knew about the scale is lost; the poses are not.
+            self.vo.remote_report = {"metric": self.use_odometry, "scale_sources": [], "wheel_calibration": None,
+                                     "n_resets": 0}
         if stop["signal"] is not None or interrupted:
             interrupted = True
             last = self.frames[-1][0] if self.frames else -1
@@ -175,7 +198,7 @@ class Pipeline:
             interrupted=interrupted,
             frontend_ms=[r.frontend_ms for r in self.records if r.frontend_ms > 0],
             backend_ms=[r.backend_ms for r in self.records if r.is_keyframe],
-            n_resets=self.backend.n_resets,
+            n_resets=self.vo.n_resets,
             notes=self.notes,
             last_frame_index=self.frames[-1][0] if self.frames else -1,
             **self.vo.scale_report(),
@@ -183,22 +206,50 @@ class Pipeline:
         )
 
     def _step(self, item, is_last: bool) -> None:
+        """Track one frame; in pipelined mode its keyframe goes to the back-end process and the frame waits
+        (in order) for that result, sequentially it is finished at once."""
         self._feed_wheels(item.timestamp)
         if isinstance(item, SkippedFrame):
             log.warning("skipping %s", item.reason)
-            est = self.vo.skip(item.index, item.timestamp, item.reason)
-            self.records.append(FrameRecord(item.index, item.timestamp, 0, 0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, False,
-                                            "", "", "", 0, float("nan"), 0.0, 0.0, note=est.note))
-            if self.viewer is not None:
-                self.viewer.log_frame(None, est)
+            tracked = self.vo.track_skipped(item.index, item.timestamp, item.reason)
+            frame = None
         else:
-            est = self.vo.process(item.timestamp, item.image, index=item.index, mask=item.mask, is_last=is_last)
-            assert est.frontend is not None
+            tracked = self.vo.track(item.timestamp, item.image, index=item.index, mask=item.mask, is_last=is_last)
+            frame = item
+        if self.worker is None:
+            self._finish(tracked, frame, self.vo.run_backend(tracked))
+            return
+        if tracked.is_keyframe:
+            assert tracked.frontend is not None
+            self.worker.submit(tracked.frontend, tracked.odom)
+        self._pending.append((tracked, frame))
+        self._drain(block=self.worker.in_flight > MAX_IN_FLIGHT)
+
+    def _drain(self, block: bool) -> None:
+        """Finish the waiting frames, in order, as far as the back-end results allow (all of them when
+        ``block``; a non-keyframe only needs the keyframes before it)."""
+        while self._pending:
+            tracked, frame = self._pending[0]
+            bo = None
+            if tracked.is_keyframe:
+                assert self.worker is not None
+                bo = self.worker.result(block=block)
+                if bo is None:
+                    return
+            self._pending.popleft()
+            self._finish(tracked, frame, bo)
+
+    def _finish(self, tracked: TrackedFrame, frame: Frame | None, bo: BackendOutput | None) -> None:
+        est = self.vo.resolve(tracked, bo)
+        if est.frontend is None:
+            self.records.append(FrameRecord(est.frame_index, est.timestamp, 0, 0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, False,
+                                            "", "", "", 0, float("nan"), 0.0, 0.0, note=est.note))
+        else:
             # The frame counts as processed only once everything about it is known (an interrupt
             # in the middle leaves frames and records in step).
             self.records.append(self._record(est.frontend, est.backend, est.note, est.latency_ms))
-            if self.viewer is not None:
-                self.viewer.log_frame(item, est)
+        if self.viewer is not None:
+            self.viewer.log_frame(frame, est)
         if self._journal is not None:
             self._journal.add(est.timestamp, est.T_world_base)
             if est.is_keyframe:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -33,9 +34,26 @@ from .frontend.frontend import Frontend
 from .geometry import interpolate_T
 from .io.odometry import WheelBuffer, WheelOdometry
 from .io.trajectory import Trajectory
-from .types import BackendOutput, BackendStatus, Frame, FrameEstimate, OdometryStep
+from .types import BackendOutput, BackendStatus, Frame, FrameEstimate, FrontendOutput, OdometryStep
 
 log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrackedFrame:
+    """A frame through the front end, waiting for its keyframe's back-end result (or for earlier ones)."""
+
+    index: int
+    timestamp: float
+    t_in: float  # perf_counter when the frame came in (latency)
+    frontend: FrontendOutput | None  # None for a skipped frame
+    odom: OdometryStep | None  # wheel step since the previous keyframe (keyframes only)
+    note: str = ""
+    wheel_delta: np.ndarray | None = None  # T_base(last keyframe)_base(this frame) from the wheels, at tracking time
+
+    @property
+    def is_keyframe(self) -> bool:
+        return self.frontend is not None and self.frontend.is_keyframe
 
 
 def default_config() -> Config:
@@ -61,7 +79,11 @@ class Odometry:
         self.kf_times: list[float] = []
         self.last_kf_time: float | None = None
         self.last_kf_online: np.ndarray | None = None  # newest keyframe pose as estimated when it was added
+        self.kf_pose_by_frame: dict[int, np.ndarray] = {}  # latest smoothed T_world_base per keyframe
         self.notes: list[str] = []
+        self._n_tracked = 0
+        self._last_t: float | None = None
+        self.remote_report: dict | None = None  # scale report of a back end run elsewhere (parallel.py)
 
     @classmethod
     def from_config(cls, config: Config | str | Path, camera: CameraModel, use_wheels: bool = True) -> Odometry:
@@ -82,42 +104,72 @@ class Odometry:
         """Track one grayscale uint8 frame taken at time t; returns its causal pose.
 
         ``index`` defaults to the count of frames so far; ``is_last`` makes it a keyframe (end of a run)."""
+        tracked = self.track(t, image, index, mask, is_last)
+        return self.resolve(tracked, self.run_backend(tracked))
+
+    def run_backend(self, tracked: TrackedFrame) -> BackendOutput | None:
+        """The back end's result for a keyframe, in this process (None for other frames)."""
+        if tracked.frontend is None or not tracked.frontend.is_keyframe:
+            return None
+        return self.backend.add_keyframe(tracked.frontend, tracked.odom)
+
+    def skip(self, index: int, t: float, reason: str) -> FrameEstimate:
+        """A frame that could not be used (black, duplicate, unreadable): it still gets a pose."""
+        return self.resolve(self.track_skipped(index, t, reason), None)
+
+    # The two halves of ``process``, for callers that run the back end elsewhere (``parallel.py``):
+    # ``track`` runs the front end and takes every wheel reading the frame's pose will need, so
+    # ``resolve`` gives the same causal pose however late the keyframe's back-end result comes.
+    def track(self, t: float, image: np.ndarray, index: int | None = None, mask: np.ndarray | None = None,
+              is_last: bool = False) -> TrackedFrame:
         t_in = time.perf_counter()
         if image is None or image.ndim != 2 or image.dtype != np.uint8:
             raise WindowVOError("Odometry.process needs a grayscale uint8 image (H x W)")
         if image.shape != (self.camera.height, self.camera.width):
             raise WindowVOError(f"image is {image.shape[1]}x{image.shape[0]}, the camera "
                                 f"{self.camera.width}x{self.camera.height}")
-        if self.frames and t <= self.frames[-1][1]:
-            raise WindowVOError(f"frame times must increase: {t} after {self.frames[-1][1]}")
-        idx = len(self.frames) if index is None else index
-        frame = Frame(idx, float(t), image, mask)
-        fo = self.frontend.process(frame, self._odom_since_kf(t), force_keyframe=is_last)
-        bo: BackendOutput | None = None
-        note = ""
+        if self._last_t is not None and t <= self._last_t:
+            raise WindowVOError(f"frame times must increase: {t} after {self._last_t}")
+        idx = self._n_tracked if index is None else index
+        fo = self.frontend.process(Frame(idx, float(t), image, mask), self._odom_since_kf(t), force_keyframe=is_last)
+        odom, note = None, ""
         if fo.is_keyframe:
             odom = self._odom_step(self.last_kf_time, t) if self.last_kf_time is not None else None
             if odom is not None and not odom.ok:
                 note = "odometry gap: vision only"
-            bo = self.backend.add_keyframe(fo, odom)
             self.kf_frames.append(idx)
             self.kf_times.append(float(t))
             self.last_kf_time = float(t)
+        return self._tracked(TrackedFrame(idx, float(t), t_in, fo, odom, note))
+
+    def track_skipped(self, index: int, t: float, reason: str) -> TrackedFrame:
+        return self._tracked(TrackedFrame(index, float(t), time.perf_counter(), None, None, f"skipped: {reason}"))
+
+    def _tracked(self, tr: TrackedFrame) -> TrackedFrame:
+        self._n_tracked += 1
+        self._last_t = tr.timestamp
+        odo = self._wheels()
+        if self.last_kf_time is not None:
+            tr.wheel_delta = (odo.delta(self.last_kf_time, tr.timestamp)
+                              if odo is not None and tr.timestamp > self.last_kf_time else np.eye(4))
+        return tr
+
+    def resolve(self, tr: TrackedFrame, bo: BackendOutput | None) -> FrameEstimate:
+        """Apply a keyframe's back-end result (frames in order) and give the frame its causal pose."""
+        note = tr.note
+        if bo is not None:
             self.last_kf_online = bo.T_world_base.copy()
+            self.kf_pose_by_frame.update(bo.keyframe_poses)
             if bo.status is BackendStatus.RECOVERED:
                 note = (note + "; " if note else "") + "backend reset"
-        T = self._online_pose(t)
-        self.frames.append((idx, float(t)))
+        T = np.eye(4) if self.last_kf_online is None or tr.wheel_delta is None else self.last_kf_online @ tr.wheel_delta
+        self.frames.append((tr.index, tr.timestamp))
         self.online.append(T)
-        return FrameEstimate(idx, float(t), T, fo.is_keyframe, False, bo.status if bo is not None else None,
-                             (time.perf_counter() - t_in) * 1000.0, fo, bo, note)
-
-    def skip(self, index: int, t: float, reason: str) -> FrameEstimate:
-        """A frame that could not be used (black, duplicate, unreadable): it still gets a pose."""
-        T = self._online_pose(t)
-        self.frames.append((index, float(t)))
-        self.online.append(T)
-        return FrameEstimate(index, float(t), T, skipped=True, note=f"skipped: {reason}")
+        fo = tr.frontend
+        if fo is None:
+            return FrameEstimate(tr.index, tr.timestamp, T, skipped=True, note=note)
+        return FrameEstimate(tr.index, tr.timestamp, T, fo.is_keyframe, False, bo.status if bo is not None else None,
+                             (time.perf_counter() - tr.t_in) * 1000.0, fo, bo, note)
 
     # ------------------------------------------------------------------ wheel helpers
     def _odom_since_kf(self, t: float) -> tuple[float, float] | None:
@@ -144,14 +196,6 @@ class Odometry:
             self.notes.append(msg)
         return OdometryStep(odo.delta(t0, t1), odo.distance(t0, t1), ok)
 
-    def _online_pose(self, t: float) -> np.ndarray:
-        if self.last_kf_online is None or self.last_kf_time is None:
-            return np.eye(4)
-        odo = self._wheels()
-        if odo is not None and t > self.last_kf_time:
-            return self.last_kf_online @ odo.delta(self.last_kf_time, t)
-        return self.last_kf_online.copy()
-
     # ------------------------------------------------------------------ outputs
     def online_trajectory(self) -> Trajectory:
         """The causal pose of every frame so far (what the robot had at each frame's time)."""
@@ -165,10 +209,12 @@ class Odometry:
         Frames between two keyframes are placed along the segment joining them, at the fraction of
         wheel distance (or time, without wheels) covered so far; frames after the last keyframe follow
         the wheels (or stay at the last keyframe)."""
-        if not self.frames or not self.kf_frames:
+        # Keyframes whose back-end result never came (a run aborted at once) are left out.
+        done = [(f, t) for f, t in zip(self.kf_frames, self.kf_times) if f in self.kf_pose_by_frame]
+        if not done:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
-        kf_poses = [self.backend.kf_pose[k] for k in range(len(self.kf_frames))]
-        kf_t = np.asarray(self.kf_times)
+        kf_poses = [self.kf_pose_by_frame[f] for f, _ in done]
+        kf_t = np.asarray([t for _, t in done])
         odo = self._wheels()
         ts, poses = [], []
         for _, t in self.frames:
@@ -193,9 +239,19 @@ class Odometry:
 
     def scale_report(self) -> dict:
         """Whether the run is metric, what fixed its scale, and the final wheel calibration."""
-        be = self.backend
-        return {
-            "metric": bool(be.metric),
-            "scale_sources": [s.value for s in be.scale_sources()],
-            "wheel_calibration": be.calibration_with_sigma() if be.calibrate and be.k >= 0 else None,
-        }
+        if self.remote_report is not None:
+            return {k: v for k, v in self.remote_report.items() if k != "n_resets"}
+        return backend_scale_report(self.backend)
+
+    @property
+    def n_resets(self) -> int:
+        return int(self.remote_report["n_resets"]) if self.remote_report is not None else self.backend.n_resets
+
+
+def backend_scale_report(be: SlidingWindowBackend) -> dict:
+    """Whether a back end's run is metric, what fixed its scale, and its final wheel calibration."""
+    return {
+        "metric": bool(be.metric),
+        "scale_sources": [s.value for s in be.scale_sources()],
+        "wheel_calibration": be.calibration_with_sigma() if be.calibrate and be.k >= 0 else None,
+    }

@@ -63,27 +63,30 @@ def fit_floor_plane(p_base: np.ndarray, cam_in_base: np.ndarray, camera_height_m
     n_pts = len(p_base)
     if n_pts < cfg.min_points:
         return None
-    best_inl, best_count = None, 0
     thr = _inlier_threshold(p_base, cam_in_base, camera_height_m if metric_scale_known else 1.0, cfg)
-    for _ in range(RANSAC_ITERATIONS):
-        i = rng.choice(n_pts, 3, replace=False)
-        a, b, c = p_base[i]
-        n = np.cross(b - a, c - a)
-        norm = np.linalg.norm(n)
-        if norm < 1e-9:
-            continue
-        n = n / norm
-        if n[2] < 0:
-            n = -n
-        if np.degrees(np.arccos(np.clip(n[2], -1.0, 1.0))) > cfg.max_tilt_deg:
-            continue
-        dist = np.abs((p_base - a) @ n)
-        scale = 1.0 if metric_scale_known else max(float(n @ (cam_in_base - a)), 1e-6)
-        inl = dist <= thr * scale
-        cnt = int(inl.sum())
-        if cnt > best_count:
-            best_inl, best_count = inl, cnt
-    if best_inl is None or best_count < cfg.min_points:
+    # All hypotheses at once: planes through random triples of points, kept if nearly level.
+    tri = rng.integers(0, n_pts, (RANSAC_ITERATIONS, 3))  # a repeated index gives no normal: dropped below
+    a, b, c = p_base[tri[:, 0]], p_base[tri[:, 1]], p_base[tri[:, 2]]
+    n = np.cross(b - a, c - a)
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-9
+    n = n[ok] / norm[ok, None]
+    a = a[ok]
+    n *= np.where(n[:, 2] < 0, -1.0, 1.0)[:, None]
+    level = np.degrees(np.arccos(np.clip(n[:, 2], -1.0, 1.0))) <= cfg.max_tilt_deg
+    n, a = n[level], a[level]
+    if len(n) == 0:
+        return None
+    dist = np.abs(np.einsum("hj,nj->hn", n, p_base) - np.einsum("hj,hj->h", n, a)[:, None])  # (H, N)
+    if metric_scale_known:
+        hyp_scale = np.ones(len(n))
+    else:
+        hyp_scale = np.maximum(np.einsum("hj,hj->h", n, cam_in_base[None, :] - a), 1e-6)
+    inl_all = dist <= thr[None, :] * hyp_scale[:, None]
+    counts = inl_all.sum(axis=1)
+    best = int(np.argmax(counts))
+    best_inl, best_count = inl_all[best], int(counts[best])
+    if best_count < cfg.min_points:
         return None
     # Least-squares refit on the inliers (smallest singular vector of the centred points).
     P = p_base[best_inl]
@@ -97,8 +100,7 @@ def fit_floor_plane(p_base: np.ndarray, cam_in_base: np.ndarray, camera_height_m
         return None
     if metric_scale_known and abs(height / camera_height_m - 1.0) > cfg.height_tolerance:
         return None
-    scale = 1.0 if metric_scale_known else height
-    inliers = np.abs(p_base @ n + d) <= thr * scale
+    inliers = np.abs(p_base @ n + d) <= thr * (1.0 if metric_scale_known else height)
     if int(inliers.sum()) < cfg.min_points:
         return None
     return PlaneFit(n, d, inliers, tilt, height)

@@ -7,6 +7,8 @@ and skipped; timestamp gaps (dropped frames) are reported and processing goes on
 from __future__ import annotations
 
 import logging
+import queue
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +38,7 @@ class DataProvider:
         checks: InputChecksConfig,
         max_frames: int | None = None,
         mask_folder: Path | None = None,
+        prefetch: int = 0,
     ):
         self.seq = seq
         self.checks = checks
@@ -44,6 +47,8 @@ class DataProvider:
         dts = np.diff(seq.timestamps[: self.n])
         self.nominal_dt = float(np.median(dts)) if len(dts) else 0.0
         self._prev_img: np.ndarray | None = None
+        # Frames decoded ahead by a thread (image decoding releases the GIL, so it overlaps with tracking).
+        self.prefetch = prefetch
 
     def __len__(self) -> int:
         return self.n
@@ -61,19 +66,58 @@ class DataProvider:
             return None
         return m
 
+    def _images(self) -> Iterator[tuple[int, np.ndarray | FrameError]]:
+        """Decoded frames in order: here, or from a decoding thread running ``prefetch`` frames ahead."""
+        if self.prefetch <= 0:
+            for i in range(self.n):
+                try:
+                    yield i, self.seq.read_image(i)
+                except FrameError as err:
+                    yield i, err
+            return
+        q: queue.Queue = queue.Queue(maxsize=self.prefetch)
+        stop = threading.Event()
+
+        def decode() -> None:
+            for i in range(self.n):
+                try:
+                    item: np.ndarray | FrameError | BaseException = self.seq.read_image(i)
+                except FrameError as err:
+                    item = err
+                except BaseException as err:  # handed over, raised in the reading thread
+                    item = err
+                while not stop.is_set():
+                    try:
+                        q.put((i, item), timeout=0.2)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set() or (isinstance(item, BaseException) and not isinstance(item, FrameError)):
+                    return
+
+        worker = threading.Thread(target=decode, name="windowvo-decode", daemon=True)
+        worker.start()
+        try:
+            for _ in range(self.n):
+                i, item = q.get()
+                if isinstance(item, BaseException) and not isinstance(item, FrameError):
+                    raise item
+                yield i, item
+        finally:
+            stop.set()
+
     def __iter__(self) -> Iterator[Frame | SkippedFrame]:
         ts = self.seq.timestamps
-        for i in range(self.n):
+        for i, img_or_err in self._images():
             t = float(ts[i])
             if i > 0 and self.nominal_dt > 0 and ts[i] - ts[i - 1] > self.checks.max_time_gap_factor * self.nominal_dt:
                 gap = ts[i] - ts[i - 1]
                 log.warning("timestamp gap of %.3f s before frame %d (about %d frames dropped)", gap, i,
                             int(round(gap / self.nominal_dt)) - 1)
-            try:
-                img = self.seq.read_image(i)
-            except FrameError as err:
-                yield SkippedFrame(i, t, str(err))
+            if isinstance(img_or_err, FrameError):
+                yield SkippedFrame(i, t, str(img_or_err))
                 continue
+            img = img_or_err
             if float(img.mean()) < self.checks.black_frame_mean:
                 yield SkippedFrame(i, t, f"frame {i}: black frame (mean {img.mean():.1f})")
                 continue

@@ -1,0 +1,144 @@
+"""The back end in a worker process, so a run uses both cores (``run_mode: pipelined``).
+
+Why a process and not a thread: GTSAM's Python bindings hold the GIL for the whole of
+``ISAM2.update`` (two iSAM2 workloads in two threads ran at 0.88x of sequential; iSAM2 beside
+KLT in a thread, 1.13x), so a back-end thread cannot overlap with decoding and the front end.
+
+The main process decodes frames and runs the front end; each keyframe's typed, picklable
+payload (``FrontendOutput``, ``OdometryStep``) goes to the worker, which owns the
+``SlidingWindowBackend`` and sends ``BackendOutput`` back, in order. The back end sees exactly
+the inputs of the sequential mode, in the same order, so the trajectories are the same bit for bit.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+import queue
+import signal
+from collections import deque
+
+from .camera import CameraModel
+from .config import BackendConfig
+from .errors import WindowVOError
+from .types import BackendOutput, FrontendOutput, OdometryStep
+
+log = logging.getLogger(__name__)
+
+# Keyframes in flight before the main process waits for the worker: enough to keep both cores busy,
+# few enough that the causal poses come out with a short delay and memory stays bounded.
+MAX_IN_FLIGHT = 8
+# How often (s) a blocked wait checks that the worker is still alive.
+POLL_S = 1.0
+
+
+def _serve(inbox, outbox, parent_pid: int) -> None:
+    """Worker loop: the first message sets up one back end (camera, config, wheels), then keyframes until
+    ``None`` arrives; then its final report. It also ends when the main process is gone (killed with
+    SIGKILL, say), so no orphan is left behind."""
+    # Ctrl-C and SIGTERM go to the whole process group: the main process decides when to stop.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    from .backend.smoother import SlidingWindowBackend
+    from .stream import backend_scale_report
+
+    be = None
+    while True:
+        try:
+            msg = inbox.get(timeout=POLL_S)
+        except queue.Empty:
+            if os.getppid() != parent_pid:
+                return
+            continue
+        if msg is None:
+            report = {**backend_scale_report(be), "n_resets": be.n_resets} if be is not None else None
+            outbox.put(("done", report))
+            return
+        if be is None:
+            camera, cfg, use_odometry = msg
+            be = SlidingWindowBackend(camera, cfg, use_odometry)
+            continue
+        fo, odom = msg
+        try:
+            outbox.put(("ok", be.add_keyframe(fo, odom)))
+        except WindowVOError as err:
+            outbox.put(("error", str(err)))
+            return
+
+
+class BackendWorker:
+    """A back end running in its own process: ``start`` it, ``submit`` keyframes, ``result`` their outputs
+    in order. The process is spawned at construction, so its imports overlap with loading the sequence."""
+
+    def __init__(self) -> None:
+        ctx = mp.get_context("spawn")  # no fork of a process holding OpenCV and GTSAM threads
+        self._inbox = ctx.Queue()
+        self._outbox = ctx.Queue()
+        self._proc = ctx.Process(target=_serve, args=(self._inbox, self._outbox, os.getpid()),
+                                 name="windowvo-backend", daemon=True)
+        self._proc.start()
+        self.in_flight = 0
+        self.report: dict | None = None
+        self._ready: deque[BackendOutput] = deque()
+
+    def start(self, camera: CameraModel, cfg: BackendConfig, use_odometry: bool) -> None:
+        self._inbox.put((camera, cfg, use_odometry))
+
+    def submit(self, fo: FrontendOutput, odom: OdometryStep | None) -> None:
+        self._inbox.put((fo, odom))
+        self.in_flight += 1
+
+    def _receive(self, block: bool) -> tuple[str, object] | None:
+        while True:
+            try:
+                return self._outbox.get(block=block, timeout=POLL_S if block else None)
+            except queue.Empty:
+                if not block:
+                    return None
+                if not self._proc.is_alive():
+                    raise WindowVOError(
+                        f"the back-end process died (exit code {self._proc.exitcode}); a script that runs windowvo "
+                        "with run_mode=pipelined needs Python's `if __name__ == '__main__':` guard, or use "
+                        "run_mode=sequential") from None
+
+    def result(self, block: bool) -> BackendOutput | None:
+        """The next keyframe's output, or None if it is not ready and ``block`` is False."""
+        if not self._ready:
+            msg = self._receive(block)
+            if msg is None:
+                return None
+            kind, payload = msg
+            if kind == "error":
+                raise WindowVOError(str(payload))
+            assert kind == "ok" and isinstance(payload, BackendOutput)
+            self._ready.append(payload)
+        self.in_flight -= 1
+        return self._ready.popleft()
+
+    def finish(self) -> dict:
+        """Wait for the worker to end; returns its scale report (and ``n_resets``)."""
+        self._inbox.put(None)
+        while True:
+            msg = self._receive(block=True)
+            assert msg is not None
+            kind, payload = msg
+            if kind == "done":
+                assert isinstance(payload, dict)
+                self.report = payload
+                break
+            if kind == "error":
+                raise WindowVOError(str(payload))
+        self._proc.join(timeout=10)
+        return self.report
+
+    def close(self) -> None:
+        """Stop the worker whatever state it is in (errors, interrupts). It ignores SIGTERM (the main
+        process decides when to stop), so a worker that does not end by itself is killed."""
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(timeout=5)
+        self._inbox.cancel_join_thread()
+        self._inbox.close()
+        self._outbox.close()
