@@ -153,8 +153,9 @@ def ensure_rendered(case: SeqCase, cache: Path) -> Path:
 
 
 def case_config_data(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) -> dict:
-    """The config mapping of a case's run with the ground cue (the defaults); renders a synthetic case."""
-    data: dict = {"progress": False, "viz": {"rerun": "save" if rerun else "off"}}
+    """The config mapping of a case's run with the ground cue (the defaults); renders a synthetic case.
+    Sequential mode, so each stage's timing is its own (``--suite modes`` measures the pipelined run)."""
+    data: dict = {"progress": False, "viz": {"rerun": "save" if rerun else "off"}, "run_mode": "sequential"}
     if case.kind == "synth":
         seq_dir = ensure_rendered(case, cache)
         data["sequence"] = str(seq_dir)
