@@ -45,7 +45,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from .config import ConfigError, DatasetKind, RerunMode, config_from_dict
+from .config import ConfigError, DatasetKind, RerunMode, config_from_dict, read_yaml_mapping
 from .errors import WindowVOError
 from .executors import ExecutorKind, Task, TaskOutcome, TaskStatus, make_executor
 
@@ -110,27 +110,11 @@ def _spec_error(path: Path, err: ValidationError) -> ConfigError:
     return ConfigError(f"invalid batch spec {path}: {where}{msg}{more}")
 
 
-def _read_yaml_mapping(path: Path, what: str) -> dict:
-    if not path.is_file():
-        raise ConfigError(f"{what} not found: {path}")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read {what} {path}: {err}") from None
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"{what} {path} is not valid YAML{where}") from None
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{what} {path}: the top level must be a mapping of keys to values")
-    return data
 
 
 def load_spec(path: Path | str) -> BatchSpec:
     path = Path(path)
-    data = _read_yaml_mapping(path, "batch spec")
+    data = read_yaml_mapping(path, "batch spec")
     try:
         return BatchSpec.model_validate(data)
     except ValidationError as err:
@@ -222,7 +206,7 @@ def _load_base(spec: BatchSpec, spec_dir: Path) -> dict:
         return copy.deepcopy(spec.base)
     base_path = Path(spec.base).expanduser()
     base_path = base_path if base_path.is_absolute() else spec_dir / base_path
-    data = _read_yaml_mapping(base_path, "base config")
+    data = read_yaml_mapping(base_path, "base config")
     # Paths inside the base config are relative to the base config itself.
     fe = data.get("frontend")
     if isinstance(fe, dict):

@@ -429,23 +429,28 @@ def config_from_dict(data: dict, base_dir: Path | None = None) -> Config:
     return cfg
 
 
-def load_config(path: Path | str, overrides: list[str] | None = None) -> Config:
-    path = Path(path)
+def read_yaml_mapping(path: Path, what: str, not_found: str | None = None) -> dict:
+    """A YAML file whose top level is a mapping (empty file: ``{}``), or one clear ``ConfigError``."""
     if not path.is_file():
-        raise ConfigError(f"config file not found: {path}")
+        raise ConfigError(not_found or f"{what} not found: {path}")
     try:
-        text = path.read_text()
-        data = yaml.safe_load(text)
+        data = yaml.safe_load(path.read_text())
     except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read config {path}: {err}") from None
+        raise ConfigError(f"cannot read {what} {path}: {err}") from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"config {path} is not valid YAML{where}") from None
+        raise ConfigError(f"{what} {path} is not valid YAML{where}") from None
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        raise ConfigError(f"invalid config {path}: the top level must be a mapping of keys to values")
+        raise ConfigError(f"invalid {what} {path}: the top level must be a mapping of keys to values")
+    return data
+
+
+def load_config(path: Path | str, overrides: list[str] | None = None) -> Config:
+    path = Path(path)
+    data = read_yaml_mapping(path, "config", not_found=f"config file not found: {path}")
     data = apply_overrides(data, overrides or [])
     return config_from_dict(data, base_dir=path.parent.resolve())
 
