@@ -83,6 +83,18 @@ def test_ransac_survivors_are_almost_all_correct(world):
     assert wrong / total < 0.01, (wrong, total)
 
 
+def _two_view_errors(cam, ids0, px0, ids1, px1, T0, T1) -> tuple[float, float]:
+    """Rotation error and translation-direction error (deg) of the essential-matrix pose between two
+    frames' common tracks, against the true camera poses T0, T1 (T_world_cam)."""
+    _common, a, b = np.intersect1d(ids0, ids1, return_indices=True)
+    res = two_view_geometry(cam.undistort_normalized(px0[a]), cam.undistort_normalized(px1[b]), cam.fx, 0.5, 0.999)
+    T_c1_c0 = inv_T(T1) @ T0
+    rot_err = np.degrees(rotation_angle(res.R_cur_kf.T @ T_c1_c0[:3, :3]))
+    t_gt = T_c1_c0[:3, 3] / np.linalg.norm(T_c1_c0[:3, 3])
+    dir_err = np.degrees(np.arccos(np.clip(np.dot(res.t_cur_kf, t_gt), -1, 1)))
+    return float(rot_err), float(dir_err)
+
+
 def test_relative_pose_from_rendered_pair(world):
     w, _r = world
     cam = w.camera
@@ -92,13 +104,7 @@ def test_relative_pose_from_rendered_pair(world):
     for i in range(1, 16):
         img, T1 = render(world, 2.0 + i / 20.0)
         s1 = tr.track(img)
-    _common, a, b = np.intersect1d(s0.ids, s1.ids, return_indices=True)
-    res = two_view_geometry(cam.undistort_normalized(s0.pixels[a]), cam.undistort_normalized(s1.pixels[b]),
-                            cam.fx, 0.5, 0.999)
-    T_c1_c0 = inv_T(T1) @ T0
-    rot_err = np.degrees(rotation_angle(res.R_cur_kf.T @ T_c1_c0[:3, :3]))
-    t_gt = T_c1_c0[:3, 3] / np.linalg.norm(T_c1_c0[:3, 3])
-    dir_err = np.degrees(np.arccos(np.clip(np.dot(res.t_cur_kf, t_gt), -1, 1)))
+    rot_err, dir_err = _two_view_errors(cam, s0.ids, s0.pixels, s1.ids, s1.pixels, T0, T1)
     assert rot_err < 0.1, rot_err
     assert dir_err < 1.0, dir_err
 
@@ -258,13 +264,7 @@ def test_relative_pose_from_fisheye_pair(fisheye_world):
     for i in range(1, 16):
         img, T1 = render(fisheye_world, 2.0 + i / 20.0)
         f1 = fe.process(Frame(i, 2.0 + i / 20.0, img))
-    _common, a, b = np.intersect1d(f0.track_ids, f1.track_ids, return_indices=True)
-    res = two_view_geometry(cam.undistort_normalized(f0.pixels[a]), cam.undistort_normalized(f1.pixels[b]),
-                            cam.fx, 0.5, 0.999)
-    T_c1_c0 = inv_T(T1) @ T0
-    rot_err = np.degrees(rotation_angle(res.R_cur_kf.T @ T_c1_c0[:3, :3]))
-    t_gt = T_c1_c0[:3, 3] / np.linalg.norm(T_c1_c0[:3, 3])
-    dir_err = np.degrees(np.arccos(np.clip(np.dot(res.t_cur_kf, t_gt), -1, 1)))
+    rot_err, dir_err = _two_view_errors(cam, f0.track_ids, f0.pixels, f1.track_ids, f1.pixels, T0, T1)
     assert rot_err < 0.1, rot_err
     assert dir_err < 1.0, dir_err
 

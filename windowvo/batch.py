@@ -46,7 +46,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .config import ConfigError, DatasetKind, RerunMode, config_from_dict, read_yaml_mapping
-from .errors import WindowVOError
+from .errors import WindowVOError, cli_error
 from .executors import ExecutorKind, Task, TaskOutcome, TaskStatus, make_executor
 
 RUN_MARKER = "batch_run.json"
@@ -612,8 +612,7 @@ def main(argv: list[str] | None = None) -> int:
         result = run_batch(args.spec, ExecutorKind(args.executor), args.jobs or _default_jobs(), args.address,
                            args.force, progress=not args.no_progress)
     except WindowVOError as err:
-        print(f"windowvo: error: {err}", file=sys.stderr)
-        return 2
+        return cli_error(err)
     except KeyboardInterrupt:
         print("windowvo: batch interrupted; finished runs are kept and reused by the next invocation", file=sys.stderr)
         return 130

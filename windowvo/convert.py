@@ -17,7 +17,7 @@ import cv2
 import yaml
 
 from .config import apply_overrides, config_from_dict
-from .errors import FrameError, WindowVOError
+from .errors import FrameError, WindowVOError, cli_error
 from .io import datasets
 from .io.odometry import write_odometry_csv
 from .io.sequence import StreamedSequence, write_camera_yaml
@@ -73,8 +73,7 @@ def main(argv=None) -> int:
         seq = datasets.load(cfg)
         convert(seq, Path(a.out))
     except (WindowVOError, yaml.YAMLError) as err:
-        print(f"windowvo.convert: error: {err}", file=sys.stderr)
-        return 2
+        return cli_error(err, "windowvo.convert")
     print(f"wrote {len(seq)} frames of {seq.name} to {a.out}")
     return 0
 

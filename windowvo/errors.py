@@ -6,6 +6,8 @@ command line can print one clear line and exit with code 2 instead of a tracebac
 
 from __future__ import annotations
 
+import sys
+
 
 class WindowVOError(Exception):
     """Root of all windowvo errors."""
@@ -25,3 +27,9 @@ class CalibrationError(SequenceError):
 
 class FrameError(WindowVOError):
     """A single frame could not be used (unreadable, black, duplicated); the run goes on."""
+
+
+def cli_error(err: object, prog: str = "windowvo") -> int:
+    """What every command line does with a known error: one line on stderr, exit code 2."""
+    print(f"{prog}: error: {err}", file=sys.stderr)
+    return 2

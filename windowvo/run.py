@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from .config import Config, ConfigError, apply_overrides, config_from_dict, load_config
-from .errors import WindowVOError
+from .errors import WindowVOError, cli_error
 
 log = logging.getLogger("windowvo")
 
@@ -103,8 +103,7 @@ def main(argv: list[str] | None = None) -> int:
 
         result = run_and_report(cfg)
     except (ConfigError, WindowVOError) as err:
-        print(f"windowvo: error: {err}", file=sys.stderr)
-        return 2
+        return cli_error(err)
     return 130 if result.interrupted else 0
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import yaml
 
 from .config import CameraConfig, RosbagConfig, apply_overrides, config_from_dict
-from .errors import WindowVOError
+from .errors import WindowVOError, cli_error
 
 
 def report(bag_path: Path, rc: RosbagConfig, cam_cfg: CameraConfig | None) -> str:
@@ -64,8 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = config_from_dict(data, base_dir=base)
         print(report(Path(a.bag), cfg.rosbag, cfg.camera))
     except WindowVOError as err:
-        print(f"windowvo: error: {err}", file=sys.stderr)
-        return 2
+        return cli_error(err)
     return 0
 
 

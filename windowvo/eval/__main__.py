@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from ..errors import WindowVOError
+from ..errors import WindowVOError, cli_error
 from ..io.trajectory import read_tum
 from .metrics import evaluate, plot_trajectories
 
@@ -50,8 +50,7 @@ def main(argv=None) -> int:
         if a.plot:
             plot_trajectories(a.plot, gt, {"estimate": est})
     except WindowVOError as err:
-        print(f"windowvo.eval: error: {err}", file=sys.stderr)
-        return 2
+        return cli_error(err, "windowvo.eval")
     print(json.dumps(rep.as_dict(), indent=2) if a.json else rep.summary())
     return 0
 

@@ -7,7 +7,7 @@ import sys
 import time
 
 from ..camera import DistortionModel
-from ..errors import WindowVOError
+from ..errors import WindowVOError, cli_error
 from .generate import LENSES, LensPreset, SynthSpec, WheelErrorModel, generate_sequence, lens_fields
 from .paths import PathKind
 
@@ -95,8 +95,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         generate_sequence(a.out, spec, progress=True)
     except (WindowVOError, ValueError, OSError) as err:
-        print(f"windowvo: error: {err}", file=sys.stderr)
-        return 2
+        return cli_error(err)
     print(f"wrote {a.out} in {time.perf_counter() - t0:.1f} s")
     return 0
 

@@ -34,7 +34,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import WindowVOError
+from ..errors import WindowVOError, cli_error
 
 SETTLED_FRACTION = 0.002  # the page counts as drawn when fewer pixels than this change in 1 s
 VIEWER_PORT = 9090  # inside the private namespace only
@@ -257,8 +257,7 @@ def main(argv=None) -> int:
     try:
         w, h = (int(v) for v in a.size.lower().split("x"))
     except ValueError:
-        print(f"windowvo: error: --size must be WIDTHxHEIGHT, got {a.size!r}", file=sys.stderr)
-        return 2
+        return cli_error(f"--size must be WIDTHxHEIGHT, got {a.size!r}")
     try:
         if a.inside:
             _shoot_inside(a.rrd.resolve(), a.out_dir.resolve(), a.theme, (w, h), a.timeout, a.min_wait, debug=a.debug)
@@ -266,8 +265,7 @@ def main(argv=None) -> int:
             for path in screenshot(a.rrd, a.out_dir, tuple(a.theme), (w, h), a.timeout, a.min_wait):
                 print(path)
     except WindowVOError as err:
-        print(f"windowvo: error: {err}", file=sys.stderr)
-        return 2
+        return cli_error(err)
     return 0
 
 
