@@ -92,14 +92,35 @@ def test_calibrated_wheel_factor_residual_and_jacobians():
         assert np.allclose(Ha, Hn, atol=1e-5), (Ha, Hn)
 
 
-def test_ground_factor_residual_and_jacobians():
+def test_ground_factor_measures_height_off_the_floor_and_the_base_attitude():
+    """The native bearing factor's whitened residual is a point's height off the floor in sigmas (to first
+    order), for the pose it was made at and for a tilted one: the floor points hold the base's attitude."""
     cfg = BackendConfig(ground={"robust": "none"})
-    v = _values()
-    f = fac.ground_factor(X(1), L(7), np.array([0.0, 0.0, 1.0]), 0.0, 0.01, cfg)
-    p_base = v.atPose3(X(1)).transformTo(v.atPoint3(L(7)))
-    assert f.unwhitenedError(v)[0] == pytest.approx(p_base[2], abs=1e-12)
-    for Ha, Hn in zip(_analytic_jacobians(f, v), _numerical_jacobians(f, v)):
-        assert np.allclose(Ha, Hn, atol=1e-5), (Ha, Hn)
+    sigma = 0.0135
+    T = make_T(rpy_to_R(0.0, 0.0, 0.7), [1.0, 2.0, 0.0])
+    v = gtsam.Values()
+    v.insert(X(1), gtsam.Pose3(T))
+    for floor_z in (0.0, -0.05):  # floor at the base origin, or 5 cm below it (camera height override)
+        p_base = np.array([2.0, 0.6, floor_z])
+        f = fac.ground_factor(X(1), L(7), p_base, floor_z, sigma, cfg)
+        for dz in (0.0, 0.004, -0.01):
+            vv = gtsam.Values(v)
+            vv.insert(L(7), gtsam.Point3(T[:3, :3] @ (p_base + [0, 0, dz]) + T[:3, 3]))
+            assert np.sqrt(2 * f.error(vv)) == pytest.approx(abs(dz) / sigma, rel=0.02, abs=1e-6)
+    # The same point seen from a base pitched by 0.3 deg: the point sits r * 0.3 deg off its floor.
+    p_base = np.array([2.0, 0.6, 0.0])
+    f = fac.ground_factor(X(1), L(7), p_base, 0.0, sigma, cfg)
+    pitch = np.radians(0.3)
+    vv = gtsam.Values()
+    vv.insert(X(1), gtsam.Pose3(T @ make_T(rpy_to_R(0.0, pitch, 0.0), [0, 0, 0])))
+    vv.insert(L(7), gtsam.Point3(T[:3, :3] @ p_base + T[:3, 3]))
+    assert np.sqrt(2 * f.error(vv)) == pytest.approx(2.0 * pitch / sigma, rel=0.05)
+    # The azimuth is left to the projection factors: a point moved sideways costs (almost) nothing.
+    vv = gtsam.Values(v)
+    vv.insert(L(7), gtsam.Point3(T[:3, :3] @ (p_base + [0, 0.05, 0]) + T[:3, 3]))
+    assert np.sqrt(2 * f.error(vv)) < 0.05
+    with pytest.raises(ValueError):
+        fac.ground_factor(X(1), L(7), np.zeros(3), 0.0, sigma, cfg)
 
 
 def _scene_points(rng, n_floor=80, ramp=False):

@@ -165,10 +165,11 @@ class LandmarkManager:
             out[kk] = (T_wc[:3, :3], T_wc[:3, 3])
         return out
 
-    def triangulate(self, tid: int, cams: dict[int, tuple[np.ndarray, np.ndarray]]) -> np.ndarray | None:
-        """Midpoint triangulation of a track over the window, with angle, depth and reprojection checks."""
-        obs = [(kk, p) for kk, p, _ in self.obs.get(tid, []) if kk in cams]
-        return triangulate_midpoint(self.camera, self.cfg, obs, cams, self._cos_min_angle)
+    def triangulate(self, tids: list[int], cams: dict[int, tuple[np.ndarray, np.ndarray]]
+                    ) -> list[np.ndarray | None]:
+        """Midpoint triangulation of tracks over the window, with angle, depth and reprojection checks."""
+        tracks = [[(kk, p) for kk, p, _ in self.obs.get(tid, []) if kk in cams] for tid in tids]
+        return triangulate_many(self.camera, self.cfg, tracks, cams, self._cos_min_angle)
 
     def promote(self, tid: int, k: int, on_ground: bool) -> list[tuple[int, np.ndarray, float]]:
         """Turn a triangulated track into a landmark; returns its stored observations."""
@@ -190,8 +191,10 @@ class LandmarkManager:
     def prune(self, window_start: int) -> None:
         """Forget the bookkeeping of landmarks and observations the smoother has marginalised."""
         self.forget([t for t, lm in self.landmarks.items() if lm.last_kf < window_start])
-        for tid in list(self.obs):
-            kept = [o for o in self.obs[tid] if o[0] >= window_start]
+        for tid, track in list(self.obs.items()):
+            if track[0][0] >= window_start:  # observations are in keyframe order: nothing to drop
+                continue
+            kept = [o for o in track if o[0] >= window_start]
             if kept:
                 self.obs[tid] = kept
             else:
@@ -234,34 +237,53 @@ def triangulate_midpoint(camera: CameraModel, cfg: BackendConfig, obs: list[tupl
                          cams: dict[int, tuple[np.ndarray, np.ndarray]], cos_min_angle: float) -> np.ndarray | None:
     """Point closest to the rays of the observations (undistorted pixels), or None if it fails a check:
     rays too parallel, behind or too far from a camera, or reprojecting badly."""
-    if len(obs) < 2:
-        return None
+    return triangulate_many(camera, cfg, [obs], cams, cos_min_angle)[0]
+
+
+def triangulate_many(camera: CameraModel, cfg: BackendConfig, tracks: list[list[tuple[int, np.ndarray]]],
+                     cams: dict[int, tuple[np.ndarray, np.ndarray]], cos_min_angle: float
+                     ) -> list[np.ndarray | None]:
+    """``triangulate_midpoint`` of many tracks at once (their observations padded to one length)."""
+    out: list[np.ndarray | None] = [None] * len(tracks)
+    idx = [i for i, obs in enumerate(tracks) if len(obs) >= 2]
+    if not idx:
+        return out
     K = camera
-    # Cheap test first: the rays of the first and last observation must already diverge.
-    (k_a, uv_a), (k_b, uv_b) = obs[0], obs[-1]
-    ra = cams[k_a][0] @ np.array([(uv_a[0] - K.cx) / K.fx, (uv_a[1] - K.cy) / K.fy, 1.0])
-    rb = cams[k_b][0] @ np.array([(uv_b[0] - K.cx) / K.fx, (uv_b[1] - K.cy) / K.fy, 1.0])
-    if np.dot(ra, rb) / np.sqrt(np.dot(ra, ra) * np.dot(rb, rb)) > cos_min_angle:
-        return None
-    uv = np.asarray([o[1] for o in obs])
-    R = np.stack([cams[kk][0] for kk, _ in obs])  # (n, 3, 3) R_world_cam
-    c = np.stack([cams[kk][1] for kk, _ in obs])  # (n, 3) camera centres
-    rays_c = np.stack([(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy, np.ones(len(obs))], axis=1)
-    d = np.einsum("nij,nj->ni", R, rays_c)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    if np.degrees(np.arccos(np.clip(np.min(d @ d.T), -1, 1))) < cfg.min_triangulation_angle_deg:
-        return None
-    P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    A = P.sum(axis=0)
-    b = np.einsum("nij,nj->i", P, c)
-    if np.linalg.det(A) < 1e-9:
-        return None
-    p = np.linalg.solve(A, b)
-    pc = np.einsum("nji,nj->ni", R, p[None, :] - c)  # R^T (p - c)
-    z = pc[:, 2]
-    if np.any(z <= 0.1) or np.any(z > cfg.max_landmark_depth_m):
-        return None
-    proj = np.stack([K.fx * pc[:, 0] / z + K.cx, K.fy * pc[:, 1] / z + K.cy], axis=1)
-    if np.max(np.linalg.norm(proj - uv, axis=1)) > cfg.max_reprojection_px:
-        return None
-    return p
+    m = max(len(tracks[i]) for i in idx)
+    n = len(idx)
+    valid = np.zeros((n, m), bool)
+    uv = np.zeros((n, m, 2))
+    R = np.tile(np.eye(3), (n, m, 1, 1))  # R_world_cam per observation
+    c = np.zeros((n, m, 3))  # camera centres
+    last = np.zeros(n, int)
+    for row, i in enumerate(idx):
+        obs = tracks[i]
+        valid[row, : len(obs)] = True
+        last[row] = len(obs) - 1
+        for j, (kk, p) in enumerate(obs):
+            uv[row, j] = p
+            R[row, j], c[row, j] = cams[kk]
+    rays_c = np.stack([(uv[..., 0] - K.cx) / K.fx, (uv[..., 1] - K.cy) / K.fy, np.ones((n, m))], axis=-1)
+    d = np.einsum("nmij,nmj->nmi", R, rays_c)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    # The rays of the first and the last observation must diverge (then the widest pair does too).
+    rows = np.arange(n)
+    ok = np.einsum("ni,ni->n", d[:, 0], d[rows, last]) <= cos_min_angle
+    P = np.eye(3) - d[..., :, None] * d[..., None, :]
+    P *= valid[..., None, None]
+    A = P.sum(axis=1)
+    b = np.einsum("nmij,nmj->ni", P, c)
+    ok &= np.linalg.det(A) >= 1e-9
+    A[~ok] = np.eye(3)
+    p = np.linalg.solve(A, b[..., None])[..., 0]
+    pc = np.einsum("nmji,nmj->nmi", R, p[:, None, :] - c)  # R^T (p - c)
+    z = np.where(valid, pc[..., 2], 1.0)
+    ok &= np.all((z > 0.1) & (z <= cfg.max_landmark_depth_m), axis=1)
+    zs = np.where(z > 1e-9, z, 1.0)
+    proj = np.stack([K.fx * pc[..., 0] / zs + K.cx, K.fy * pc[..., 1] / zs + K.cy], axis=-1)
+    err = np.where(valid, np.linalg.norm(proj - uv, axis=-1), 0.0)
+    ok &= err.max(axis=1) <= cfg.max_reprojection_px
+    for row, i in enumerate(idx):
+        if ok[row]:
+            out[i] = p[row]
+    return out
