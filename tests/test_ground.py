@@ -27,6 +27,17 @@ def test_robust_thresholds_are_chi_square_quantiles():
     assert fac.threshold(1.345, 2, cfg) == 1.345  # an explicit threshold wins
 
 
+def test_chi_square_distribution_matches_its_closed_forms():
+    import math
+
+    for x in (0.01, 0.5, 2.0, 3.84, 7.8, 20.0):
+        assert fac.chi2_cdf(x, 1) == pytest.approx(math.erf(math.sqrt(x / 2)), abs=1e-12)
+        assert fac.chi2_cdf(x, 2) == pytest.approx(1 - math.exp(-x / 2), abs=1e-12)
+        closed3 = math.erf(math.sqrt(x / 2)) - math.sqrt(2 * x / math.pi) * math.exp(-x / 2)
+        assert fac.chi2_cdf(x, 3) == pytest.approx(closed3, abs=1e-12)
+    assert fac.chi2_cdf(0.0, 2) == 0.0
+
+
 def _numerical_jacobians(factor, values: gtsam.Values, eps: float = 1e-6) -> list[np.ndarray]:
     out = []
     for key in list(factor.keys()):

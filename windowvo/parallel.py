@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 
 # Keyframes in flight before the main process waits for the worker: enough to keep both cores busy,
 # few enough that the causal poses come out with a short delay and memory stays bounded.
-MAX_IN_FLIGHT = 8
+MAX_IN_FLIGHT = 16
 # How often (s) a blocked wait checks that the worker is still alive.
 POLL_S = 1.0
 
