@@ -181,6 +181,19 @@ def test_floor_detection_switches_off_where_the_floor_assumption_breaks():
     assert fit_floor_plane(np.zeros((0, 3)), np.zeros(3), 0.45, GroundConfig(), rng) is None
 
 
+def test_floor_points_at_the_base_origin_are_not_candidates():
+    """A camera mounted behind the base origin sees the floor at the origin, where the ground factor's
+    bearing from the base origin is undefined: such points are left out, and every candidate makes a factor."""
+    from windowvo.backend.ground import floor_candidates
+
+    cam = np.array([-0.6, 0.0, 0.45])  # 0.6 m behind the base origin
+    pts = np.array([[0.0, 0.0, 0.0], [0.05, 0.02, 0.0], [1.0, 0.3, 0.0], [2.0, -0.4, 0.0]])
+    mask = floor_candidates(pts, cam, 0.45, GroundConfig())
+    assert mask.tolist() == [False, False, True, True]
+    for p in pts[mask]:
+        fac.ground_factor(X(1), L(7), p, 0.0, 0.0135, BackendConfig())  # no error
+
+
 def test_wheel_calibration_correct_removes_scale_and_bias():
     T_true = make_T(rpy_to_R(0, 0, 0.1), [0.5, 0.02, 0.0])
     d = float(np.hypot(0.5, 0.02))

@@ -21,6 +21,10 @@ import numpy as np
 from ..config import GroundConfig
 
 RANSAC_ITERATIONS = 60
+# The ground factor measures a floor point's elevation seen from the base origin, which is undefined
+# for a point right at the origin: floor candidates keep this many camera heights away from it (only a
+# camera mounted behind the base origin can see such a point at all).
+MIN_BASE_RANGE_HEIGHTS = 0.2
 
 
 @dataclass
@@ -36,14 +40,16 @@ class PlaneFit:
 
 def floor_candidates(p_base: np.ndarray, cam_in_base: np.ndarray, camera_height_m: float,
                      cfg: GroundConfig) -> np.ndarray:
-    """Mask of points below the horizon by at least ``min_depression_deg`` and within range."""
+    """Mask of points below the horizon by at least ``min_depression_deg``, within range, and not at
+    the base origin."""
     if len(p_base) == 0:
         return np.zeros(0, bool)
     rel = p_base - cam_in_base
     horiz = np.hypot(rel[:, 0], rel[:, 1])
     depression = np.degrees(np.arctan2(-rel[:, 2], np.maximum(horiz, 1e-9)))
-    return (depression >= cfg.min_depression_deg) & (horiz <= cfg.max_range_heights * camera_height_m) & (
-        rel[:, 0] > 0.0)
+    off_origin = np.hypot(p_base[:, 0], p_base[:, 1]) >= MIN_BASE_RANGE_HEIGHTS * camera_height_m
+    return ((depression >= cfg.min_depression_deg) & (horiz <= cfg.max_range_heights * camera_height_m)
+            & (rel[:, 0] > 0.0) & off_origin)
 
 
 def _inlier_threshold(p_base: np.ndarray, cam_in_base: np.ndarray, camera_height_m: float,
