@@ -8,7 +8,8 @@ calibration at keyframe k (``Point2``: distance scale, yaw bias in rad per metre
 Robust losses: GTSAM applies an M-estimator to the norm of the whitened residual, whose
 square is chi-square distributed with the factor's dimension. :func:`robust_threshold` turns a
 confidence (``backend.robust_confidence``) into the threshold for a factor of dimension d,
-so a 2-D pixel, a 3-D planar odometry and a 1-D ground residual are judged alike.
+so a 2-D pixel, a 3-D planar odometry and the ground residual are judged alike (the ground factor is
+a bearing weighted on its elevation only, its azimuth nearly free: effectively 1-D, judged as such).
 """
 
 from __future__ import annotations
