@@ -47,11 +47,43 @@ def test_feature_level_accuracy_beats_wheels(long_features):
     assert rep.ate_se3_rmse_m <= 0.003 * rep.path_length_m, rep
     assert wheel.ate_se3_rmse_m >= 5.0 * rep.ate_se3_rmse_m, (wheel, rep)
     assert be.n_resets == 0
-    # bounded window: only the last window_keyframes poses remain in the smoother
+    # bounded window: only the window's poses remain in the smoother
+    n_poses, n_keys = _poses_in_smoother(be)
+    cfg = BackendConfig()
+    assert cfg.window_keyframes <= n_poses <= cfg.window_keyframes + cfg.marginalize_every - 1
+    assert n_keys - n_poses < 1500
+
+
+def _poses_in_smoother(be) -> tuple[int, int]:
     keys = [gtsam.Symbol(k) for k in be.smoother.timestamps()]
-    n_poses = sum(1 for s in keys if chr(s.chr()) == "x")
-    assert n_poses == BackendConfig().window_keyframes
-    assert len(keys) - n_poses < 1500
+    return sum(1 for s in keys if chr(s.chr()) == "x"), len(keys)
+
+
+@pytest.mark.parametrize("block", [1, 5])
+def test_old_keyframes_leave_the_window_in_blocks(block):
+    """The smoother holds exactly the keyframes from window_start(k) to k: between window_keyframes
+    and window_keyframes + block - 1 of them, and old ones leave only on every block-th keyframe."""
+    spec = SynthSpec(path=PathKind.LOOP, duration_s=30.0, speed=0.8, seed=5)
+    fs = simulate_features(spec, pixel_noise=0.5)
+    cfg = BackendConfig(window_keyframes=8, marginalize_every=block)
+    be = SlidingWindowBackend(fs.world.camera, cfg, use_odometry=True)
+    sizes = []
+    for i, fo in enumerate(fs.keyframes):
+        odom = None
+        if i > 0:
+            t0, t1 = fs.keyframes[i - 1].timestamp, fo.timestamp
+            odom = OdometryStep(fs.odometry.delta(t0, t1), fs.odometry.distance(t0, t1))
+        be.add_keyframe(fo, odom)
+        n_poses, _ = _poses_in_smoother(be)
+        stamps = [t for k, t in be.smoother.timestamps().items() if chr(gtsam.Symbol(k).chr()) == "x"]
+        assert min(stamps) == be.window_start() and n_poses == be.k - be.window_start() + 1, be.k
+        sizes.append(n_poses)
+    assert len(sizes) > 30 and be.n_resets == 0
+    steady = sizes[cfg.window_keyframes + block:]
+    assert min(steady) == 8 and max(steady) == 8 + block - 1
+    # the oldest keyframe moves only when k is a multiple of the block
+    drops = [k for k in range(1, len(sizes)) if sizes[k] < sizes[k - 1] + 1]
+    assert drops and all(k % block == 0 for k in drops)
 
 
 def test_odometry_between_factor_matches_ground_truth():

