@@ -182,7 +182,7 @@ class ResetPriorConfig(_Section):
 class BackendConfig(_Section):
     window_keyframes: int = Field(20, ge=3, le=500, description="keyframes in the fixed-lag window (at least; "
                                   "see marginalize_every)")
-    marginalize_every: int = Field(1, ge=1, le=50, description="marginalise old keyframes in blocks of this many: "
+    marginalize_every: int = Field(6, ge=1, le=50, description="marginalise old keyframes in blocks of this many: "
                                    "the window then holds window_keyframes to window_keyframes + N - 1 keyframes, "
                                    "and only one update in N pays for a marginalisation (1: every update)")
     max_landmarks: int = Field(150, ge=10, le=5000, description="landmark budget of the window")

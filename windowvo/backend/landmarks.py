@@ -149,10 +149,12 @@ class LandmarkManager:
         candidates.sort(key=lambda t: -len(self.obs[t]))
         return seen, candidates
 
-    def budgets(self, max_floor: int) -> tuple[int, int]:
-        """Room left for new landmarks: (others, floor landmarks)."""
-        n_floor = sum(1 for lm in self.landmarks.values() if lm.on_ground)
-        return self.cfg.max_landmarks - (len(self.landmarks) - n_floor), max_floor - n_floor
+    def budgets(self, max_floor: int, seen_since: int = 0) -> tuple[int, int]:
+        """Room left for new landmarks: (others, floor landmarks). Only landmarks seen by keyframe
+        ``seen_since`` or later count (those waiting for their block's marginalisation do not)."""
+        live = [lm for lm in self.landmarks.values() if lm.last_kf >= seen_since]
+        n_floor = sum(1 for lm in live if lm.on_ground)
+        return self.cfg.max_landmarks - (len(live) - n_floor), max_floor - n_floor
 
     # ------------------------------------------------------------------ triangulation
     @staticmethod

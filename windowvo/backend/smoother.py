@@ -366,7 +366,8 @@ class SlidingWindowBackend:
 
         Floor landmarks fix the metric scale, so tracks below the horizon have a budget of their own
         (``ground.max_landmarks``) besides the window's ``max_landmarks``."""
-        reg_left, floor_left = self.lm.budgets(self.cfg.ground.max_landmarks if self._ground_active() else 0)
+        reg_left, floor_left = self.lm.budgets(self.cfg.ground.max_landmarks if self._ground_active() else 0,
+                                               self._budget_since())
         below = self._below_horizon(candidates, T_guess) if floor_left > 0 else np.zeros(len(candidates), bool)
         born: list[tuple[int, np.ndarray]] = []
         # All at once (vectorised); then taken in order while the budgets have room.
@@ -387,6 +388,12 @@ class SlidingWindowBackend:
                 reg_left -= 1
         return born
 
+    def _budget_since(self) -> int:
+        """Landmarks count against the budgets while a keyframe among the last ``window_keyframes + 1``
+        saw them: with ``marginalize_every`` 1 that is every landmark the smoother holds during an
+        update; with blocks, those waiting for their block to leave do not take new ones' places."""
+        return self.k - self.cfg.window_keyframes
+
     def _below_horizon(self, tids: list[int], T_guess: np.ndarray) -> np.ndarray:
         """Whether each track's newest ray points below the horizon (a cheap floor pre-check)."""
         if not tids:
@@ -401,7 +408,8 @@ class SlidingWindowBackend:
     def _within_budget(self, born: list[tuple[int, np.ndarray]], on_floor: np.ndarray
                        ) -> tuple[list[tuple[int, np.ndarray]], np.ndarray]:
         """Keep floor landmarks within the floor budget and the others within the window's budget."""
-        reg_left, floor_left = self.lm.budgets(self.cfg.ground.max_landmarks if self._ground_active() else 0)
+        reg_left, floor_left = self.lm.budgets(self.cfg.ground.max_landmarks if self._ground_active() else 0,
+                                               self._budget_since())
         keep = []
         for i, floor in enumerate(on_floor):
             if floor and floor_left > 0:
