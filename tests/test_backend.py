@@ -183,3 +183,18 @@ def test_batched_triangulation_recovers_points_and_applies_every_check():
     for tr, p in zip(tracks, out):
         alone = triangulate_many(cam, cfg, [tr], cams, cos_min)[0]
         assert (alone is None) == (p is None) and (p is None or np.array_equal(alone, p))
+
+
+def test_landmark_budgets_count_only_landmarks_seen_recently():
+    """Landmarks waiting for their block to be marginalised (not seen since ``seen_since``) leave
+    their places in the budgets to new ones; floor and other landmarks have budgets of their own."""
+    from windowvo.backend.landmarks import LandmarkManager, LandmarkState
+    from windowvo.camera import CameraModel
+
+    cam = CameraModel(width=640, height=480, fx=340.0, fy=340.0, cx=320.0, cy=240.0)
+    lm = LandmarkManager(cam, BackendConfig(max_landmarks=10))
+    for tid, (last_kf, floor) in enumerate([(3, False), (7, False), (8, False), (2, True), (9, True)]):
+        lm.landmarks[tid] = LandmarkState(key=tid, last_kf=last_kf, on_ground=floor)
+    assert lm.budgets(4) == (10 - 3, 4 - 2)  # every landmark counts
+    assert lm.budgets(4, seen_since=5) == (10 - 2, 4 - 1)  # those last seen at 3 and 2 do not
+    assert lm.budgets(4, seen_since=10) == (10, 4)

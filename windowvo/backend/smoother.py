@@ -139,7 +139,7 @@ class SlidingWindowBackend:
         multiple of B, so the window holds ``window_keyframes`` to ``window_keyframes + B - 1``
         keyframes. Measured: marginalisation is most of an update's cost (iSAM2 re-eliminates the
         window and the marginal becomes one dense factor over the landmarks the leaving keyframes saw),
-        about 15 ms against 5 ms without; in blocks, four updates in five skip it."""
+        about 15 ms against 5-9 ms without; in blocks, B - 1 updates in B skip it."""
         k = self.k if k is None else k
         b = self.cfg.marginalize_every
         return max(0, k - k % b - (self.cfg.window_keyframes - 1))
