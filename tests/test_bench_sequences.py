@@ -125,3 +125,18 @@ def test_bench_peak_rss_is_the_worker_own():
     peak = float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
     del block
     assert 5.0 < peak < 150.0
+
+
+def test_bench_overrides_reach_every_run_and_bad_ones_stop_early(tmp_path, capsys):
+    case = next(c for c in bench.synthetic_cases(5.0) if c.name == "loop")
+    data = bench.case_config_data(case, tmp_path / "cache", tmp_path / "out",
+                                  overrides=("backend.marginalize_every=2", "backend.window_keyframes=9"))
+    cfg = config_from_dict(data)
+    assert (cfg.backend.marginalize_every, cfg.backend.window_keyframes) == (2, 9)
+    assert cfg.run_mode.value == "sequential" and Path(cfg.output) == tmp_path / "out" / "loop"
+    # a bad override: one line on stderr and exit 2, before any sequence is rendered or run
+    rc = bench.main(["--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c"), "--only", "loop",
+                     "--set", "backend.marginalize_every=0"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "backend.marginalize_every" in err[0], err
+    assert not (tmp_path / "c").exists() and not (tmp_path / "o").exists()

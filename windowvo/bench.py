@@ -21,6 +21,8 @@ Suites:
   large (frames are streamed from the bag, so memory should stay flat).
 
 Each sequence runs in its own process (``--jobs N`` runs N at once) so peak RSS is per run.
+``--set KEY=VALUE`` (repeatable) changes the config of every windowvo run of the ``sequences``
+suite, e.g. ``--set backend.marginalize_every=1`` to compare a setting against the defaults.
 Numbers are what this machine measured; nothing is enforced here.
 """
 
@@ -37,6 +39,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from .config import apply_overrides, config_from_dict
+from .errors import WindowVOError
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -152,9 +157,11 @@ def ensure_rendered(case: SeqCase, cache: Path) -> Path:
     return seq_dir
 
 
-def case_config_data(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) -> dict:
-    """The config mapping of a case's run with the ground cue (the defaults); renders a synthetic case.
-    Sequential mode, so each stage's timing is its own (``--suite modes`` measures the pipelined run)."""
+def case_config_data(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False,
+                     overrides: tuple[str, ...] = ()) -> dict:
+    """The config mapping of a case's run with the ground cue (the defaults, changed by ``overrides``:
+    ``dotted.key=value`` as on the run's command line); renders a synthetic case. Sequential mode, so
+    each stage's timing is its own (``--suite modes`` measures the pipelined run)."""
     data: dict = {"progress": False, "viz": {"rerun": "save" if rerun else "off"}, "run_mode": "sequential"}
     if case.kind == "synth":
         seq_dir = ensure_rendered(case, cache)
@@ -164,10 +171,11 @@ def case_config_data(case: SeqCase, cache: Path, out_root: Path, rerun: bool = F
                     odometry_synthesis={"enabled": True, "scale_error": case.kitti_wheel_scale_error,
                                         "yaw_bias_per_m": KITTI_WHEEL_YAW_BIAS_PER_M})
     data["output"] = str(out_root / case.name)
-    return data
+    return apply_overrides(data, list(overrides))
 
 
-def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) -> dict:
+def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False,
+             overrides: tuple[str, ...] = ()) -> dict:
     """One sequence (runs in a worker process): windowvo, windowvo without the ground cue and
     online wheel calibration (``NO_GROUND_CUE``, outputs in ``no_ground_cue/``), both baselines."""
     import logging
@@ -178,7 +186,7 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False) ->
     from .errors import SequenceError
     from .eval.baselines import essential_chaining
     from .eval.metrics import evaluate, plot_trajectories
-    data = case_config_data(case, cache, out_root, rerun)
+    data = case_config_data(case, cache, out_root, rerun, overrides)
     out = out_root / case.name
     cfg = config_from_dict(data)
     rep = run_job(cfg)
@@ -309,11 +317,12 @@ def sequences_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def run_cases_in_processes(cases: list[SeqCase], cache: Path, out: Path, jobs: int) -> list[dict]:
+def run_cases_in_processes(cases: list[SeqCase], cache: Path, out: Path, jobs: int,
+                           overrides: tuple[str, ...] = ()) -> list[dict]:
     """Each case in a fresh interpreter (``jobs`` at once, windowvo.executors); failures are reported and dropped."""
     from .executors import LocalExecutor, call_task
 
-    tasks = [call_task(c.name, run_case, c, cache, out) for c in cases]
+    tasks = [call_task(c.name, run_case, c, cache, out, False, tuple(overrides)) for c in cases]
     by_name = {o.key: o for o in LocalExecutor(max(1, jobs)).run(tasks)}
     rows = []
     for c in cases:
@@ -582,8 +591,17 @@ def main(argv=None) -> int:
     p.add_argument("--jobs", type=int, default=1, help="sequences run in parallel processes")
     p.add_argument("--only", nargs="*", help="run only these sequence names")
     p.add_argument("--backend-keyframes", type=int, default=5000)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override for every windowvo run of the sequences suite (repeatable), "
+                        "e.g. --set backend.marginalize_every=1")
     a = p.parse_args(argv)
     out, cache = Path(a.out), Path(a.cache)
+    if a.set:  # a bad key or value is one line and exit 2, before anything is rendered or run
+        try:
+            config_from_dict(apply_overrides({"sequence": ".", "output": str(out), "progress": False}, list(a.set)))
+        except WindowVOError as err:
+            print(f"windowvo.bench: error: {err}", file=sys.stderr)
+            return 2
     out.mkdir(parents=True, exist_ok=True)
     cache.mkdir(parents=True, exist_ok=True)
     results: dict = {}
@@ -595,7 +613,9 @@ def main(argv=None) -> int:
         for c in cases:
             if c.kind == "synth":
                 ensure_rendered(c, cache)
-        rows = run_cases_in_processes(cases, cache, out, a.jobs)
+        if a.set:
+            print(f"config overrides for every run: {' '.join(a.set)}\n")
+        rows = run_cases_in_processes(cases, cache, out, a.jobs, tuple(a.set))
         results["sequences"] = rows
         print("## Sequences\n")
         print(sequences_caption(rows) + "\n")
