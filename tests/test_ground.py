@@ -27,15 +27,15 @@ def test_robust_thresholds_are_chi_square_quantiles():
     assert fac.threshold(1.345, 2, cfg) == 1.345  # an explicit threshold wins
 
 
-def test_chi_square_distribution_matches_its_closed_forms():
+def test_robust_thresholds_match_the_chi_square_closed_forms():
     import math
 
-    for x in (0.01, 0.5, 2.0, 3.84, 7.8, 20.0):
-        assert fac.chi2_cdf(x, 1) == pytest.approx(math.erf(math.sqrt(x / 2)), abs=1e-12)
-        assert fac.chi2_cdf(x, 2) == pytest.approx(1 - math.exp(-x / 2), abs=1e-12)
-        closed3 = math.erf(math.sqrt(x / 2)) - math.sqrt(2 * x / math.pi) * math.exp(-x / 2)
-        assert fac.chi2_cdf(x, 3) == pytest.approx(closed3, abs=1e-12)
-    assert fac.chi2_cdf(0.0, 2) == 0.0
+    for conf in (0.5, 0.9, 0.95, 0.99, 0.999):
+        x1, x2, x3 = (fac.robust_threshold(d, conf) ** 2 for d in (1, 2, 3))
+        assert math.erf(math.sqrt(x1 / 2)) == pytest.approx(conf, abs=1e-12)
+        assert 1 - math.exp(-x2 / 2) == pytest.approx(conf, abs=1e-12)
+        closed3 = math.erf(math.sqrt(x3 / 2)) - math.sqrt(2 * x3 / math.pi) * math.exp(-x3 / 2)
+        assert closed3 == pytest.approx(conf, abs=1e-12)
 
 
 def _numerical_jacobians(factor, values: gtsam.Values, eps: float = 1e-6) -> list[np.ndarray]:

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import apply_overrides, config_from_dict
-from .errors import WindowVOError
+from .errors import WindowVOError, cli_error
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -600,8 +600,7 @@ def main(argv=None) -> int:
         try:
             config_from_dict(apply_overrides({"sequence": ".", "output": str(out), "progress": False}, list(a.set)))
         except WindowVOError as err:
-            print(f"windowvo.bench: error: {err}", file=sys.stderr)
-            return 2
+            return cli_error(err, "windowvo.bench")
     out.mkdir(parents=True, exist_ok=True)
     cache.mkdir(parents=True, exist_ok=True)
     results: dict = {}
