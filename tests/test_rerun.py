@@ -20,7 +20,7 @@ from windowvo.eval.metrics import evaluate
 from windowvo.io.sequence import Sequence
 from windowvo.pipeline import Pipeline, RunResult, write_outputs
 from windowvo.types import FrameEstimate
-from windowvo.viz.rerun_logger import LEGEND_ROWS_SHARE, RerunLogger
+from windowvo.viz.rerun_logger import LEGEND_ROWS_SHARE, RerunLogger, tail_starts
 
 N_FRAMES = 80
 
@@ -313,3 +313,23 @@ def _empty_trajectory():
 def test_jpeg_quality_is_validated(short_loop, tmp_path):
     with pytest.raises(WindowVOError, match="jpeg_quality"):
         make_config(short_loop, tmp_path / "out", viz={"jpeg_quality": 0})
+
+
+def test_track_tails_start_where_each_track_was_first_seen_in_the_history():
+    """A tail starts at the oldest frame of the history holding that track: checked against the
+    definition, frame by frame, on random histories (tracks that start late, end early, or were never seen)."""
+    rng = np.random.default_rng(3)
+    history = []
+    for _ in range(6):
+        ids = np.sort(rng.choice(40, size=int(rng.integers(0, 25)), replace=False))
+        history.append((ids, rng.uniform(0, 640, (len(ids), 2))))
+    query = np.arange(45)  # 40..44 never seen
+    got = tail_starts(history, query)
+    for i, tid in enumerate(query):
+        frames = [px[ids == tid][0] for ids, px in history if np.any(ids == tid)]
+        if frames:
+            assert np.array_equal(got[i], frames[0]), tid
+        else:
+            assert np.all(np.isnan(got[i])), tid
+    assert tail_starts([], query).shape == (45, 2)
+    assert tail_starts(history, query[:0]).shape == (0, 2)

@@ -74,40 +74,44 @@ class LandmarkManager:
         self.landmarks: dict[int, LandmarkState] = {}
         self.dead: set[int] = set()
         self.pending_removal: list[int] = []  # smoother factor indices to remove at the next update
+        self._where: dict[int, np.ndarray] = {}  # track id -> p_world_landmark in the last estimate
 
     # ------------------------------------------------------------------ queries
-    def positions(self, estimate: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
-        """Track ids and world positions of the landmarks the estimate holds."""
-        ids, pts = [], []
+    def read_estimate(self, estimate: gtsam.Values | None) -> None:
+        """Read every landmark's position from a new estimate, once: the queries below use these until
+        the next estimate (each read from GTSAM costs about a microsecond per landmark, and several
+        queries per keyframe would repeat it)."""
+        self._where = {}
+        if estimate is None:
+            return
         for tid, lm in self.landmarks.items():
             if estimate.exists(lm.key):
-                ids.append(tid)
-                pts.append(estimate.atPoint3(lm.key))
+                self._where[tid] = estimate.atPoint3(lm.key)
+
+    def positions(self) -> tuple[np.ndarray, np.ndarray]:
+        """Track ids and world positions of the landmarks in the last estimate (still alive)."""
+        ids = [tid for tid in self.landmarks if tid in self._where]
+        pts = [self._where[tid] for tid in ids]
         return np.asarray(ids, np.int64), np.asarray(pts, float).reshape(-1, 3)
 
-    def seen_now(self, fo_ids: np.ndarray, uv: np.ndarray, k: int, estimate: gtsam.Values
-                 ) -> tuple[list[int], np.ndarray, np.ndarray]:
-        """Landmarks observed at keyframe k: ids, world positions, undistorted pixels."""
+    def seen_now(self, fo_ids: np.ndarray, uv: np.ndarray, k: int) -> tuple[list[int], np.ndarray, np.ndarray]:
+        """Landmarks observed at keyframe k: ids, world positions (last estimate), undistorted pixels."""
         ids, pts, pix = [], [], []
         for tid, p in zip(fo_ids.tolist(), uv):
             lm = self.landmarks.get(tid)
-            if lm is None or lm.last_kf != k or not estimate.exists(lm.key):
+            if lm is None or lm.last_kf != k or tid not in self._where:
                 continue
             ids.append(tid)
-            pts.append(estimate.atPoint3(lm.key))
+            pts.append(self._where[tid])
             pix.append(p)
         return ids, np.asarray(pts, float).reshape(-1, 3), np.asarray(pix, float).reshape(-1, 2)
 
-    def pnp_pose(self, fo_ids: np.ndarray, uv: np.ndarray, estimate: gtsam.Values | None,
-                 pixel_sigma: float) -> np.ndarray | None:
+    def pnp_pose(self, fo_ids: np.ndarray, uv: np.ndarray, pixel_sigma: float) -> np.ndarray | None:
         """T_world_base from the window's landmarks seen in this frame (EPnP in RANSAC), or None."""
-        if estimate is None:
-            return None
         pts3, pts2 = [], []
         for tid, p in zip(fo_ids.tolist(), uv):
-            lm = self.landmarks.get(tid)
-            if lm is not None and estimate.exists(lm.key):
-                pts3.append(estimate.atPoint3(lm.key))
+            if tid in self.landmarks and tid in self._where:
+                pts3.append(self._where[tid])
                 pts2.append(p)
         if len(pts3) < PNP_MIN_POINTS:
             return None
@@ -228,6 +232,7 @@ class LandmarkManager:
         self.dead.update(self.landmarks)
         self.landmarks.clear()
         self.obs.clear()
+        self._where = {}
         self.pending_removal = []
         st = np.ones(len(fo_ids)) if stretch is None else np.asarray(stretch, float)
         for tid, p, sc in zip(fo_ids.tolist(), uv, st.tolist()):
@@ -253,18 +258,25 @@ def triangulate_many(camera: CameraModel, cfg: BackendConfig, tracks: list[list[
     K = camera
     m = max(len(tracks[i]) for i in idx)
     n = len(idx)
+    # Every observation's (row, column, keyframe, pixel), then placed into the padded arrays at once.
+    lengths = np.asarray([len(tracks[i]) for i in idx])
+    rows_flat = np.repeat(np.arange(n), lengths)
+    cols_flat = np.arange(len(rows_flat)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    kf_flat = [kk for i in idx for kk, _ in tracks[i]]
+    kf_order = sorted(set(kf_flat))
+    slot = {kk: j for j, kk in enumerate(kf_order)}
+    kf_R = np.stack([cams[kk][0] for kk in kf_order])
+    kf_c = np.stack([cams[kk][1] for kk in kf_order])
+    which = np.asarray([slot[kk] for kk in kf_flat])
     valid = np.zeros((n, m), bool)
+    valid[rows_flat, cols_flat] = True
     uv = np.zeros((n, m, 2))
+    uv[rows_flat, cols_flat] = np.asarray([p for i in idx for _, p in tracks[i]], float).reshape(-1, 2)
     R = np.tile(np.eye(3), (n, m, 1, 1))  # R_world_cam per observation
+    R[rows_flat, cols_flat] = kf_R[which]
     c = np.zeros((n, m, 3))  # camera centres
-    last = np.zeros(n, int)
-    for row, i in enumerate(idx):
-        obs = tracks[i]
-        valid[row, : len(obs)] = True
-        last[row] = len(obs) - 1
-        for j, (kk, p) in enumerate(obs):
-            uv[row, j] = p
-            R[row, j], c[row, j] = cams[kk]
+    c[rows_flat, cols_flat] = kf_c[which]
+    last = lengths - 1
     rays_c = np.stack([(uv[..., 0] - K.cx) / K.fx, (uv[..., 1] - K.cy) / K.fy, np.ones((n, m))], axis=-1)
     d = np.einsum("nmij,nmj->nmi", R, rays_c)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)

@@ -114,11 +114,21 @@ class SlidingWindowBackend:
         self.kf_frame: dict[int, int] = {}
         self.kf_time: dict[int, float] = {}
         self.kf_pose: dict[int, np.ndarray] = {}  # latest estimate; final once marginalised
-        self.estimate: gtsam.Values | None = None
+        self._estimate: gtsam.Values | None = None
         self.n_resets = 0
         self._new_smoother()
 
     # ------------------------------------------------------------------ smoother plumbing
+    @property
+    def estimate(self) -> gtsam.Values | None:
+        """The smoother's latest estimate (landmark positions are read from it once, when it is set)."""
+        return self._estimate
+
+    @estimate.setter
+    def estimate(self, est: gtsam.Values | None) -> None:
+        self._estimate = est
+        self.lm.read_estimate(est)
+
     def _new_smoother(self) -> None:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.cfg.relinearize_threshold)
@@ -196,7 +206,7 @@ class SlidingWindowBackend:
         T_prev = self.kf_pose[k - 1]
         if odom is not None and self._odometry_usable(odom):
             return T_prev @ self.calib.correct(odom.T_prev_cur, odom.distance_m)
-        T_pnp = self.lm.pnp_pose(fo.track_ids, fo.pixels_undistorted, self.estimate, self.cfg.pixel_sigma)
+        T_pnp = self.lm.pnp_pose(fo.track_ids, fo.pixels_undistorted, self.cfg.pixel_sigma)
         if T_pnp is not None:
             return T_pnp
         if k == 1 and fo.R_cam_kf_cam is not None and fo.t_dir_kf is not None:
@@ -346,7 +356,7 @@ class SlidingWindowBackend:
         self.n_ground_keyframes += int(n_ground > 0)
         self._refresh_states()
         self.lm.prune(w0)
-        ids, p_world, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, k, self.estimate)
+        ids, p_world, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, k)
         errs = reprojection_errors(self.camera, self.kf_pose[k], self.T_base_cam, p_world, uv)
         self.lm.check_outliers(ids, errs, self.window_start(k + 1))
         return len(new_lms), n_vis, n_ground
@@ -431,7 +441,7 @@ class SlidingWindowBackend:
         if not self._ground_active() or not born:
             return np.zeros(len(born), bool)
         new_pts = np.asarray([p for _, p in born])
-        old_pts = self.lm.positions(self.estimate)[1] if self.estimate is not None else np.zeros((0, 3))
+        old_pts = self.lm.positions()[1]
         pts = np.concatenate([new_pts, old_pts])
         mask, _ = floor_mask(pts, T_guess, self.T_base_cam, self.camera_height_m, self.cfg.ground, self._rng)
         return mask[: len(born)]
@@ -528,8 +538,8 @@ class SlidingWindowBackend:
                 status: BackendStatus) -> BackendOutput:
         est = self.estimate
         assert est is not None
-        ids, pts = self.lm.positions(est)
-        _, p_seen, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, self.k, est)
+        ids, pts = self.lm.positions()
+        _, p_seen, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, self.k)
         rms = reprojection_rms(reprojection_errors(self.camera, self.kf_pose[self.k], self.T_base_cam, p_seen, uv))
         w0 = self.window_start()
         return BackendOutput(

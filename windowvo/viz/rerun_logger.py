@@ -246,6 +246,24 @@ def age_colors(ages: np.ndarray) -> np.ndarray:
     return (young * (1 - a) + old * a).astype(np.uint8)
 
 
+def tail_starts(history: list[tuple[np.ndarray, np.ndarray]], ids: np.ndarray) -> np.ndarray:
+    """Where each track of ``ids`` was at the oldest frame of ``history`` (per frame, oldest first: track
+    ids and pixels) that holds it, (N, 2); nan for a track the history does not hold."""
+    start = np.full((len(ids), 2), np.nan)
+    if not history or len(ids) == 0:
+        return start
+    # All frames at once: a track's first occurrence is where its tail starts.
+    all_ids = np.concatenate([h_ids for h_ids, _ in history])
+    all_px = np.concatenate([np.asarray(h_px, float).reshape(-1, 2) for _, h_px in history])
+    if len(all_ids) == 0:
+        return start
+    uniq, first = np.unique(all_ids, return_index=True)
+    pos = np.minimum(np.searchsorted(uniq, ids), len(uniq) - 1)
+    found = uniq[pos] == ids
+    start[found] = all_px[first[pos[found]]]
+    return start
+
+
 def _transform(T: np.ndarray) -> rr.Transform3D:
     q = quat_from_R(T[:3, :3])
     return rr.Transform3D(translation=T[:3, 3], quaternion=rr.Quaternion(xyzw=q))
@@ -524,14 +542,6 @@ class RerunLogger:
             p.flush(rec)
         self._frames_since_flush = 0
 
-    def _tail_starts(self, ids: np.ndarray) -> np.ndarray:
-        """Where each track was at the oldest frame of the tail history it appears in, (N, 2)."""
-        start = np.full((len(ids), 2), np.nan)
-        for h_ids, h_px in reversed(self._tail_history):
-            _, a, b = np.intersect1d(ids, h_ids, assume_unique=True, return_indices=True)
-            start[a] = h_px[b]
-        return start
-
     def _log_camera(self, frame: Frame, fo: FrontendOutput) -> None:
         rec = self.rec
         ok, jpeg = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, self.cfg.viz.jpeg_quality])
@@ -545,7 +555,7 @@ class RerunLogger:
         tail = self.cfg.viz.track_tail
         if tail > 1 and len(fo.track_ids):
             # Track tails as arrows from where each track was `tail` frames ago to where it is.
-            start = self._tail_starts(fo.track_ids)
+            start = tail_starts(self._tail_history, fo.track_ids)
             ok_rows = np.all(np.isfinite(start), axis=1)
             rec.log(f"{CAM_PATH}/tails", rr.Arrows2D(origins=start[ok_rows], vectors=fo.pixels[ok_rows] - start[ok_rows],
                                                      colors=[TAIL_RGB], radii=0.6))
