@@ -198,3 +198,35 @@ def test_landmark_budgets_count_only_landmarks_seen_recently():
     assert lm.budgets(4) == (10 - 3, 4 - 2)  # every landmark counts
     assert lm.budgets(4, seen_since=5) == (10 - 2, 4 - 1)  # those last seen at 3 and 2 do not
     assert lm.budgets(4, seen_since=10) == (10, 4)
+
+
+def test_landmark_positions_come_from_the_last_estimate_and_only_for_live_landmarks():
+    """Positions are read once per estimate; a forgotten landmark, one the estimate lacks, and (after a
+    window restart) every old one are left out until the next estimate holds them."""
+    from windowvo.backend.factors import L
+    from windowvo.backend.landmarks import LandmarkManager, LandmarkState
+    from windowvo.camera import CameraModel
+
+    cam = CameraModel(width=640, height=480, fx=340.0, fy=340.0, cx=320.0, cy=240.0)
+    lm = LandmarkManager(cam, BackendConfig())
+    est = gtsam.Values()
+    for tid in (4, 9, 12):
+        lm.landmarks[tid] = LandmarkState(key=L(tid), last_kf=5)
+        est.insert(L(tid), gtsam.Point3(tid, 0.0, 1.0))
+    lm.landmarks[20] = LandmarkState(key=L(20), last_kf=5)  # not in the estimate (yet)
+    lm.read_estimate(est)
+    ids, pts = lm.positions()
+    assert ids.tolist() == [4, 9, 12] and np.array_equal(pts[:, 0], [4.0, 9.0, 12.0])
+    seen, p_seen, uv = lm.seen_now(np.array([9, 20, 33]), np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]), 5)
+    assert seen == [9] and np.array_equal(p_seen, [[9.0, 0.0, 1.0]]) and np.array_equal(uv, [[1.0, 2.0]])
+    lm.forget([9])
+    assert lm.positions()[0].tolist() == [4, 12]
+    lm.restart(6, np.array([4]), np.array([[1.0, 1.0]]))
+    assert len(lm.positions()[0]) == 0  # nothing until the next estimate
+    lm.landmarks[4] = LandmarkState(key=L(4), last_kf=6)
+    assert len(lm.positions()[0]) == 0  # the old estimate's position of track 4 is not reused
+    est2 = gtsam.Values()
+    est2.insert(L(4), gtsam.Point3(0.5, 0.5, 2.0))
+    lm.read_estimate(est2)
+    ids, pts = lm.positions()
+    assert ids.tolist() == [4] and np.array_equal(pts, [[0.5, 0.5, 2.0]])
