@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -140,3 +141,23 @@ def test_bench_overrides_reach_every_run_and_bad_ones_stop_early(tmp_path, capsy
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "backend.marginalize_every" in err[0], err
     assert not (tmp_path / "c").exists() and not (tmp_path / "o").exists()
+
+
+def test_bench_cpu_accounting_counts_threads_and_ended_children():
+    """The run-modes suite's "cores busy" adds the CPU of every thread and of the ended back-end
+    process: a thread and a child process that each burn 0.3 s of CPU both show up."""
+    import subprocess
+    import threading
+
+    from windowvo.bench import _cpu_with_children_s
+
+    burn = "import time\nt = time.thread_time()\nwhile time.thread_time() - t < 0.3: pass\n"
+    before = _cpu_with_children_s()
+    th = threading.Thread(target=exec, args=(burn,))
+    th.start()
+    th.join()
+    after_thread = _cpu_with_children_s()
+    subprocess.run([sys.executable, "-c", burn], check=True)
+    after_child = _cpu_with_children_s()
+    assert after_thread - before >= 0.29
+    assert after_child - after_thread >= 0.29
