@@ -134,25 +134,6 @@ def test_ground_factor_measures_height_off_the_floor_and_the_base_attitude():
         fac.ground_factor(X(1), L(7), np.zeros(3), 0.0, sigma, cfg)
 
 
-def test_ground_factor_attitude_sigma_lets_far_points_weigh_less():
-    """With ``ground.attitude_sigma_deg`` a (a base rocking off its floor), a point r away that sits dz off the
-    floor costs dz / hypot(sigma, r * a) sigmas: near points keep their weight, far ones lose it."""
-    sigma, a_deg = 0.0135, 1.0
-    cfg = BackendConfig(ground={"robust": "none", "attitude_sigma_deg": a_deg})
-    T = make_T(rpy_to_R(0.0, 0.0, -0.4), [0.5, -1.0, 0.0])
-    dz = 0.01
-    for r in (0.5, 2.0, 6.0):
-        p_base = np.array([r * np.cos(0.3), r * np.sin(0.3), 0.0])
-        f = fac.ground_factor(X(1), L(7), p_base, 0.0, sigma, cfg)
-        v = gtsam.Values()
-        v.insert(X(1), gtsam.Pose3(T))
-        v.insert(L(7), gtsam.Point3(T[:3, :3] @ (p_base + [0, 0, dz]) + T[:3, 3]))
-        expected = dz / np.hypot(sigma, r * np.radians(a_deg))
-        assert np.sqrt(2 * f.error(v)) == pytest.approx(expected, rel=0.02)
-        f0 = fac.ground_factor(X(1), L(7), p_base, 0.0, sigma, BackendConfig(ground={"robust": "none"}))
-        assert np.sqrt(2 * f0.error(v)) == pytest.approx(dz / sigma, rel=0.02)  # the default: no attitude term
-
-
 def _scene_points(rng, n_floor=80, ramp=False):
     """Points in a base frame with the camera at (0.25, 0, 0.45): floor, a wall and a box top."""
     x = rng.uniform(0.6, 5.0, n_floor)

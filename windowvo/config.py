@@ -143,9 +143,6 @@ class GroundConfig(_Section):
                                           "T_base_cam (base origin on the floor)")
     sigma_height_fraction: float = Field(0.03, gt=0, description="sigma of a floor point's height, as a share of the "
                                          "camera height")
-    attitude_sigma_deg: float = Field(0.0, ge=0, le=10, description="sigma of the base's roll/pitch off the floor it "
-                                      "stands on (a rocking chassis, vibration; 0: rigid and level): a floor point r "
-                                      "away is then r times this angle off its floor, so far points weigh less")
     robust: RobustKind = Field(RobustKind.HUBER, description="robust loss of the ground factor")
     robust_k: float | None = Field(None, gt=0, description="its threshold in sigmas; default: chi-square quantile, 1-D")
     min_depression_deg: float = Field(8.0, ge=0, lt=90, description="floor candidates lie at least this far below "

@@ -261,10 +261,8 @@ def ground_factor(pose_key: int, landmark_key: int, p_base: np.ndarray, floor_z:
     e = B.T @ np.array([0.0, 0.0, 1.0])
     e /= np.linalg.norm(e)  # elevation direction in tangent coordinates
     a = np.array([-e[1], e[0]])  # azimuth direction
-    g = cfg.ground
-    # d(elevation)/dz = r / (r^2 + z^2); a base rocking off its floor by a small angle tilts every
-    # elevation by that angle, independent of range.
-    sigma_elev = float(np.hypot(sigma_m * r / (r * r + floor_z * floor_z), np.radians(g.attitude_sigma_deg)))
+    sigma_elev = sigma_m * r / (r * r + floor_z * floor_z)  # d(elevation)/dz = r / (r^2 + z^2)
     info = np.outer(e, e) / sigma_elev**2 + np.outer(a, a) / GROUND_AZIMUTH_SIGMA_RAD**2
+    g = cfg.ground
     noise = robust(gtsam.noiseModel.Gaussian.Information(info), g.robust, threshold(g.robust_k, 1, cfg))
     return gtsam.BearingFactor3D(pose_key, landmark_key, measured, noise)
