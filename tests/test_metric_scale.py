@@ -38,10 +38,11 @@ def _final_wheel_scale(out) -> float:
     return vals[-1]
 
 
-@pytest.mark.parametrize("name,scale_error,seed", [("loop_plus2", 0.02, 31), ("loop_minus3", -0.03, 32)])
-def test_loop_scale_error_is_gone(seq_factory, tmp_path, name, scale_error, seed):
-    seq = seq_factory(name, path=PathKind.LOOP, duration_s=25.0, seed=seed,
-                      wheel=WheelErrorModel(scale_error=scale_error))
+@pytest.mark.parametrize("name,path,scale_error,seed", [("loop_plus2", PathKind.LOOP, 0.02, 31),
+                                                       ("loop_minus3", PathKind.LOOP, -0.03, 32),
+                                                       ("fig8_minus3", PathKind.FIGURE_EIGHT, -0.03, 38)])
+def test_scale_error_is_gone(seq_factory, tmp_path, name, path, scale_error, seed):
+    seq = seq_factory(name, path=path, duration_s=25.0, seed=seed, wheel=WheelErrorModel(scale_error=scale_error))
     rep = _run(seq, tmp_path / "on")
     a = rep.accuracy
     est_scale = _final_wheel_scale(tmp_path / "on")

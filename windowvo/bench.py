@@ -3,8 +3,8 @@
 Suites:
 
 * ``sequences`` (default): rendered synthetic sequences (loop, figure eight with vibration,
-  ramp, stop-and-go, wheel slip, and loops whose wheels report 2% too much and 3% too little
-  distance) and the KITTI excerpts in ``../shared/data`` when present (synthetic wheels with a
+  ramp, stop-and-go, wheel slip, loops whose wheels report 2% too much and 3% too little
+  distance, and a figure eight rocking by 1 deg whose wheels report 3% too little) and the KITTI excerpts in ``../shared/data`` when present (synthetic wheels with a
   1% and with a 2% scale error). None of the wheel errors is told to the estimator.
   For each: windowvo (its smoothed and its causal, online trajectory), windowvo a second
   time without the ground-plane cue and without online wheel calibration (the behaviour
@@ -87,6 +87,10 @@ def synthetic_cases(duration: float) -> list[SeqCase]:
                                                   wheel=WheelErrorModel(scale_error=0.02))),
         SeqCase("loop_wheels-3pct", "synth", dict(path=PathKind.LOOP, duration_s=duration, seed=37,
                                                   wheel=WheelErrorModel(scale_error=-0.03))),
+        # A rocking base with a large wheel error: the online calibration's known weak spot (README).
+        SeqCase("figure_eight_vibration_wheels-3pct", "synth",
+                dict(path=PathKind.FIGURE_EIGHT, duration_s=duration, seed=62, vibration_deg=1.0,
+                     wheel=WheelErrorModel(scale_error=-0.03))),
     ]
 
 
