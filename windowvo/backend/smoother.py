@@ -317,9 +317,10 @@ class SlidingWindowBackend:
                 owners.append((tid, k))
                 stamps[key] = float(k)
                 n_vis += 1
-            born = self._triangulate_candidates(candidates, cams, T_guess)
+            budgets = self._budgets()  # no landmark is born before both uses below
+            born = self._triangulate_candidates(candidates, cams, T_guess, budgets)
             on_floor = self._floor_of(born, T_guess)
-            born, on_floor = self._within_budget(born, on_floor)
+            born, on_floor = self._within_budget(born, on_floor, budgets)
             cam_center = (T_guess @ self.T_base_cam)[:3, 3]
             for (tid, p), floor in zip(born, on_floor):
                 key = L(tid)
@@ -371,13 +372,13 @@ class SlidingWindowBackend:
     def _ground_active(self) -> bool:
         return self.use_ground and self.metric
 
-    def _triangulate_candidates(self, candidates: list[int], cams, T_guess: np.ndarray) -> list[tuple[int, np.ndarray]]:
-        """Triangulate tracks, longest first, while the landmark budgets have room.
+    def _triangulate_candidates(self, candidates: list[int], cams, T_guess: np.ndarray,
+                                budgets: tuple[int, int]) -> list[tuple[int, np.ndarray]]:
+        """Triangulate tracks, longest first, while the landmark budgets (others, floor) have room.
 
         Floor landmarks fix the metric scale, so tracks below the horizon have a budget of their own
         (``ground.max_landmarks``) besides the window's ``max_landmarks``."""
-        reg_left, floor_left = self.lm.budgets(self.cfg.ground.max_landmarks if self._ground_active() else 0,
-                                               self._budget_since())
+        reg_left, floor_left = budgets
         below = self._below_horizon(candidates, T_guess) if floor_left > 0 else np.zeros(len(candidates), bool)
         born: list[tuple[int, np.ndarray]] = []
         # All at once (vectorised); then taken in order while the budgets have room.
@@ -398,11 +399,13 @@ class SlidingWindowBackend:
                 reg_left -= 1
         return born
 
-    def _budget_since(self) -> int:
-        """Landmarks count against the budgets while a keyframe among the last ``window_keyframes + 1``
-        saw them: with ``marginalize_every`` 1 that is every landmark the smoother holds during an
-        update; with blocks, those waiting for their block to leave do not take new ones' places."""
-        return self.k - self.cfg.window_keyframes
+    def _budgets(self) -> tuple[int, int]:
+        """Room for new landmarks now: (others, floor). Landmarks count against the budgets while a
+        keyframe among the last ``window_keyframes + 1`` saw them: with ``marginalize_every`` 1 that is
+        every landmark the smoother holds during an update; with blocks, those waiting for their block
+        to leave do not take new ones' places."""
+        return self.lm.budgets(self.cfg.ground.max_landmarks if self._ground_active() else 0,
+                               self.k - self.cfg.window_keyframes)
 
     def _below_horizon(self, tids: list[int], T_guess: np.ndarray) -> np.ndarray:
         """Whether each track's newest ray points below the horizon (a cheap floor pre-check)."""
@@ -415,11 +418,10 @@ class SlidingWindowBackend:
         dep = np.degrees(np.arctan2(-d[:, 2], np.hypot(d[:, 0], d[:, 1])))
         return dep >= self.cfg.ground.min_depression_deg
 
-    def _within_budget(self, born: list[tuple[int, np.ndarray]], on_floor: np.ndarray
+    def _within_budget(self, born: list[tuple[int, np.ndarray]], on_floor: np.ndarray, budgets: tuple[int, int]
                        ) -> tuple[list[tuple[int, np.ndarray]], np.ndarray]:
         """Keep floor landmarks within the floor budget and the others within the window's budget."""
-        reg_left, floor_left = self.lm.budgets(self.cfg.ground.max_landmarks if self._ground_active() else 0,
-                                               self._budget_since())
+        reg_left, floor_left = budgets
         keep = []
         for i, floor in enumerate(on_floor):
             if floor and floor_left > 0:
@@ -536,8 +538,7 @@ class SlidingWindowBackend:
 
     def _output(self, fo: FrontendOutput, n_new: int, n_vis: int, n_ground: int,
                 status: BackendStatus) -> BackendOutput:
-        est = self.estimate
-        assert est is not None
+        assert self.estimate is not None
         ids, pts = self.lm.positions()
         _, p_seen, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, self.k)
         rms = reprojection_rms(reprojection_errors(self.camera, self.kf_pose[self.k], self.T_base_cam, p_seen, uv))

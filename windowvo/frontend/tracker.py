@@ -43,18 +43,6 @@ class _History:
         if drop:
             del self.frames[:drop]
 
-    def positions_ago(self, ids: np.ndarray, n: int) -> np.ndarray:
-        """Pixel positions of ``ids`` ``n`` frames ago, or the oldest position still held (vectorised)."""
-        out = np.full((len(ids), 2), np.nan)
-        for _frame, f_ids, f_pts in reversed(self.frames[-(n + 1):]):
-            order = np.argsort(f_ids)
-            pos = np.clip(np.searchsorted(f_ids, ids, sorter=order), 0, max(len(f_ids) - 1, 0))
-            if len(f_ids) == 0:
-                break
-            hit = f_ids[order[pos]] == ids
-            out[hit] = f_pts[order[pos[hit]]]
-        return out
-
     def get(self, track_id: int, last: int | None = None) -> list[tuple[int, float, float]]:
         out = []
         for frame, ids, pts in reversed(self.frames):
@@ -127,10 +115,6 @@ class _TrackStore:
     def history(self, track_id: int, last: int | None = None) -> list[tuple[int, float, float]]:
         """Pixel positions (frame, u, v) of a live track, oldest first (the last ``last`` only)."""
         return self._hist.get(int(track_id), last)
-
-    def tail_starts(self, ids: np.ndarray, n: int) -> np.ndarray:
-        """Where each track was ``n`` frames ago (or at its birth, if younger), (N, 2)."""
-        return self._hist.positions_ago(np.asarray(ids), n)
 
     def _keep(self, keep: np.ndarray) -> None:
         self.ids, self.pts, self.ages = self.ids[keep], self.pts[keep], self.ages[keep]
