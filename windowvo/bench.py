@@ -4,8 +4,9 @@ Suites:
 
 * ``sequences`` (default): rendered synthetic sequences (loop, figure eight with vibration,
   ramp, stop-and-go, wheel slip, loops whose wheels report 2% too much and 3% too little
-  distance, and a figure eight rocking by 1 deg whose wheels report 3% too little) and the KITTI excerpts in ``../shared/data`` when present (synthetic wheels with a
-  1% and with a 2% scale error). None of the wheel errors is told to the estimator.
+  distance, and a figure eight rocking by 1 deg whose wheels report 3% too little) and the
+  KITTI excerpts in ``../shared/data`` when present (synthetic wheels with a 1% and with a 2%
+  scale error). None of the wheel errors is told to the estimator.
   For each: windowvo (its smoothed and its causal, online trajectory), windowvo a second
   time without the ground-plane cue and without online wheel calibration (the behaviour
   before the metric-scale work; back-end time of both runs, so the cue's cost shows), and,
