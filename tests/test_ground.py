@@ -7,7 +7,7 @@ import pytest
 
 from windowvo.backend import factors as fac
 from windowvo.backend.factors import C, L, X
-from windowvo.backend.ground import fit_floor_plane, floor_mask
+from windowvo.backend.ground import attitude_jitter_deg, fit_floor_plane, floor_mask, level_up
 from windowvo.backend.smoother import SlidingWindowBackend, WheelCalibration
 from windowvo.config import BackendConfig, GroundConfig
 from windowvo.geometry import make_T, rpy_to_R
@@ -132,6 +132,59 @@ def test_ground_factor_measures_height_off_the_floor_and_the_base_attitude():
     assert np.sqrt(2 * f.error(vv)) < 0.05
     with pytest.raises(ValueError):
         fac.ground_factor(X(1), L(7), np.zeros(3), 0.0, sigma, cfg)
+
+
+def test_level_ground_factor_measures_height_along_the_floor_normal_not_the_base_attitude():
+    """The level factor's residual is the point's height above the base origin along the given normal,
+    less the floor's z; tilting the base leaves it unchanged (that is its point: a rocking chassis must
+    not move its floor points); the Jacobians match numerical ones."""
+    cfg = BackendConfig(ground={"robust": "none"})
+    up = np.array([0.02, -0.01, 1.0])
+    up /= np.linalg.norm(up)
+    v = _values()
+    f = fac.level_ground_factor(X(1), L(7), up, -0.05, 0.0135, cfg)
+    p, t = v.atPoint3(L(7)), v.atPose3(X(1)).translation()
+    assert f.unwhitenedError(v)[0] == pytest.approx(up @ (p - t) + 0.05, abs=1e-12)
+    tilted = gtsam.Values(v)
+    tilted.update(X(1), gtsam.Pose3(v.atPose3(X(1)).matrix() @ make_T(rpy_to_R(0.03, -0.02, 0.0), [0, 0, 0])))
+    assert f.unwhitenedError(tilted)[0] == pytest.approx(f.unwhitenedError(v)[0], abs=1e-12)
+    raised = gtsam.Values(v)
+    raised.update(L(7), p + 0.01 * up)  # 1 cm up along the normal: 1 cm more residual
+    assert f.unwhitenedError(raised)[0] - f.unwhitenedError(v)[0] == pytest.approx(0.01, abs=1e-12)
+    for Ha, Hn in zip(_analytic_jacobians(f, v), _numerical_jacobians(f, v)):
+        assert np.allclose(Ha, Hn, atol=1e-6), (Ha, Hn)
+
+
+def _tilted_z(roll_deg: np.ndarray, pitch_deg: np.ndarray) -> np.ndarray:
+    return np.array([rpy_to_R(np.radians(r), np.radians(p), 0.0)[:, 2] for r, p in zip(roll_deg, pitch_deg)])
+
+
+def test_attitude_jitter_tells_a_rocking_base_from_a_level_one_and_a_ramp():
+    rng = np.random.default_rng(4)
+    n = 25
+    level = _tilted_z(rng.normal(0, 0.005, n), rng.normal(0, 0.005, n))
+    # a ramp: level, then the pitch turns by 7.6 deg over three keyframes, then stays
+    ramp = _tilted_z(np.zeros(n), np.clip((np.arange(n) - 10) * 7.6 / 3, 0, 7.6))
+    rocking = _tilted_z(rng.normal(0, 1.0, n), rng.normal(0, 1.0, n))
+    assert attitude_jitter_deg(level) < 0.02
+    assert attitude_jitter_deg(ramp) < 0.02  # the median ignores the few keyframes of the turn
+    assert 0.8 < attitude_jitter_deg(rocking) < 2.5
+    assert attitude_jitter_deg(level[:1]) == 0.0
+
+
+def test_level_up_averages_the_rocking_out_and_keeps_another_plane_out():
+    rng = np.random.default_rng(5)
+    floor = rpy_to_R(0.0, np.radians(3.0), 0.0)[:, 2]  # a floor sloping by 3 deg
+    # a window: 20 keyframes rocking by 0.7 deg on it, 8 still on the level floor before the slope
+    # (their plain mean is 0.83-1.1 deg off the slope over ten seeds)
+    on_slope = _tilted_z(rng.normal(0, 0.7, 20), 3.0 + rng.normal(0, 0.7, 20))
+    before = _tilted_z(np.zeros(8), np.zeros(8))
+    fitted = rpy_to_R(0.0, np.radians(3.4), 0.0)[:, 2]  # the fitted normal: noisy, 0.4 deg off
+    up = level_up(np.concatenate([before, on_slope]), fitted, 2.0)
+    assert np.degrees(np.arccos(np.clip(up @ floor, -1, 1))) < 0.4
+    assert np.linalg.norm(up) == pytest.approx(1.0)
+    # no keyframe near the fitted normal: the fitted normal itself
+    assert np.allclose(level_up(before, fitted, 2.0), fitted)
 
 
 def _scene_points(rng, n_floor=80, ramp=False):

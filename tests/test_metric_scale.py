@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from conftest import SHARED_DATA, make_config
 
-from windowvo.app import run_job
+from windowvo.app import rocking_summary, run_job
 from windowvo.config import config_from_dict
 from windowvo.synth.generate import WheelErrorModel
 from windowvo.synth.paths import PathKind
@@ -51,6 +51,9 @@ def test_scale_error_is_gone(seq_factory, tmp_path, name, path, scale_error, see
     # the metric error is the shape error: the wheels' scale error no longer shows
     assert a.ate_se3_rmse_m <= 1.3 * a.ate_sim3_rmse_m, a
     assert abs(est_scale - (1.0 + scale_error)) <= 0.003, est_scale
+    # a level base: floor points stay tied to their keyframes' own base frames
+    rocking = rocking_summary(rep.result.records)
+    assert rocking["base_rocking_deg_median"] < 0.05 and rocking["level_frame_keyframes"] == 0, rocking
     summary_scale = rep.result.wheel_calibration
     assert summary_scale is not None and summary_scale.scale == pytest.approx(est_scale, abs=1e-4)
     assert summary_scale.scale_sigma < 0.01
@@ -62,15 +65,20 @@ def test_scale_error_is_gone(seq_factory, tmp_path, name, path, scale_error, see
 def test_figure_eight_with_vibration_scale_error_shrinks(seq_factory, tmp_path):
     seq = seq_factory("fig8_plus2", path=PathKind.FIGURE_EIGHT, duration_s=25.0, seed=33, vibration_deg=1.0,
                       wheel=WheelErrorModel(scale_error=0.02))
-    on = _run(seq, tmp_path / "on").accuracy
+    rep = _run(seq, tmp_path / "on")
+    on = rep.accuracy
     off = _run(seq, tmp_path / "off", **OFF).accuracy
     est_scale = _final_wheel_scale(tmp_path / "on")
+    # the rocking is seen, and the floor points are measured in a level frame
+    rocking = rocking_summary(rep.result.records)
+    assert rocking["base_rocking_deg_median"] > 0.5 and rocking["level_frame_keyframes"] >= 20, rocking
     print(f"figure eight: ATE SE3 {on.ate_se3_rmse_m:.4f} (off {off.ate_se3_rmse_m:.4f}) Sim3 {on.ate_sim3_rmse_m:.4f}; "
           f"wheel scale {est_scale:.4f} (true 1.020)")
     assert on.ate_se3_rmse_m <= 1.3 * on.ate_sim3_rmse_m, on
     assert on.ate_se3_rmse_m <= 0.75 * off.ate_se3_rmse_m, (on, off)
     # Issue 11 asks for the scale within 0.3 %; on the vibrating figure eight it was measured at 0.35 %
-    # (see the closing note), so this bound is 0.5 %.
+    # (see the closing note), so this bound is 0.5 %. With the level frame: 0.36 % (here; 0.02-0.59 %, mean
+    # 0.22 %, over 12 other rocking sequences, against 0.05-0.82 %, mean 0.30 %, without it).
     assert abs(est_scale - 1.02) <= 0.005, est_scale
 
 

@@ -21,6 +21,7 @@ from .io.sequence import Sequence
 from .io.trajectory import Trajectory
 from .parallel import BackendWorker
 from .pipeline import Pipeline, RunResult, write_outputs
+from .types import FrameRecord
 
 log = logging.getLogger("windowvo")
 
@@ -125,6 +126,14 @@ def _run_job(cfg: Config, progress, worker: BackendWorker | None) -> JobReport:
     return report
 
 
+def rocking_summary(records: list[FrameRecord]) -> dict:
+    """How much the base rocked (median over keyframes of ``base_rocking_deg``, None when never judged) and at
+    how many keyframes floor points were tied to the floor in a level frame because of it."""
+    rocking = [rec.base_rocking_deg for rec in records if rec.is_keyframe and np.isfinite(rec.base_rocking_deg)]
+    return {"base_rocking_deg_median": round(float(np.median(rocking)), 4) if rocking else None,
+            "level_frame_keyframes": sum(1 for rec in records if rec.level_frame)}
+
+
 def _progress_bar(cfg: Config, total: int):
     if not cfg.progress or not sys.stderr.isatty():
         return None, None
@@ -171,6 +180,7 @@ def run_and_report(cfg: Config) -> RunResult:
             "yaw_bias_sigma": round(r.wheel_calibration.yaw_bias_sigma, 6)},
         "odometry_synthetic": bool(report.sequence.odometry is not None and report.sequence.odometry.synthetic),
         "interrupted": r.interrupted,
+        **rocking_summary(r.records),
         "accuracy": report.accuracy.as_dict() if report.accuracy is not None else None,
         "accuracy_online": report.online_accuracy.as_dict() if report.online_accuracy is not None else None,
         "wheel_only_accuracy": report.wheel_accuracy.as_dict() if report.wheel_accuracy is not None else None,
@@ -189,6 +199,9 @@ def run_and_report(cfg: Config) -> RunResult:
         c = r.wheel_calibration
         lines.append(f"wheel calibration: scale {c.scale:.4f} ± {c.scale_sigma:.4f}, "
                      f"yaw bias {c.yaw_bias_per_m * 1000:.2f} ± {c.yaw_bias_sigma * 1000:.2f} mrad/m")
+    if summary["base_rocking_deg_median"] is not None:
+        lines.append(f"base rocking: median tilt change between keyframes {summary['base_rocking_deg_median']:.2f} "
+                     f"deg; floor points measured in a level frame at {summary['level_frame_keyframes']} keyframes")
     if report.accuracy is not None:
         lines.append("accuracy (smoothed): " + report.accuracy.summary(metric=r.metric))
     if report.online_accuracy is not None:

@@ -159,6 +159,14 @@ class GroundConfig(_Section):
     max_landmarks: int = Field(120, ge=0, le=2000, description="floor landmarks in the window, on top of "
                                "backend.max_landmarks (they carry the scale)")
     seed: int = Field(0, description="seed of the plane RANSAC (runs are deterministic)")
+    rocking_jitter_deg: float | None = Field(0.2, gt=0, description="the base counts as rocking on its suspension "
+                                             "when the median change of its tilt between consecutive keyframes of "
+                                             "the window exceeds this; floor points are then measured along the "
+                                             "floor's normal (a level frame) instead of their keyframe's z axis. "
+                                             "Measured: 0.009-0.014 on level rendered runs and the ramp, 0.6-2.5 "
+                                             "with 0.5-2.5 deg of rocking. null: never")
+    level_select_deg: float = Field(2.0, gt=0, le=20, description="level frame: the mean z axis of the window's "
+                                    "keyframes within this angle of the fitted floor plane's normal")
 
 
 class WheelCalibrationConfig(_Section):

@@ -285,6 +285,8 @@ class Pipeline:
             wheel_scale=round(bo.wheel_scale, 5) if bo is not None else float("nan"),
             wheel_yaw_bias_per_m=round(bo.wheel_yaw_bias_per_m, 6) if bo is not None else float("nan"),
             latency_ms=round(latency_ms, 3),
+            base_rocking_deg=round(bo.base_rocking_deg, 4) if bo is not None else float("nan"),
+            level_frame=bo.level_frame if bo is not None else False,
         )
 
 

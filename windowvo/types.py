@@ -121,6 +121,11 @@ class BackendOutput:
     n_ground_factors: int = 0  # floor landmarks tied to the ground plane at this keyframe
     wheel_scale: float = float("nan")  # online wheel calibration after this keyframe (nan: not estimated)
     wheel_yaw_bias_per_m: float = float("nan")
+    # Median change of the base's tilt between consecutive keyframes of the window (deg; nan: not judged
+    # yet): how much the chassis rocks. Above ``ground.rocking_jitter_deg`` floor points are measured in a
+    # level frame.
+    base_rocking_deg: float = float("nan")
+    level_frame: bool = False  # this keyframe's floor points were measured in the level frame
 
 
 @dataclass
@@ -171,3 +176,5 @@ class FrameRecord:
     wheel_scale: float = float("nan")
     wheel_yaw_bias_per_m: float = float("nan")
     latency_ms: float = 0.0
+    base_rocking_deg: float = float("nan")
+    level_frame: bool = False

@@ -9,6 +9,13 @@ the ground plane with a factor (``factors.ground_factor``). Where the assumption
 ramp ahead, boxes, a floor without texture, a camera that does not see the floor) no plane
 passes these checks, and the cue switches itself off for that keyframe.
 
+A base that rocks on its suspension (bumps, vibration) breaks one more assumption: the floor is
+then not the xy plane of each keyframe's base frame, and tying a floor point to its birth
+keyframe's tilted plane turns the rocking into a height error, which the smoother partly pays
+with scale. ``attitude_jitter_deg`` tells a rocking base from a level one (the median change of
+the base's tilt between consecutive keyframes), and ``level_up`` gives the floor's normal that
+the floor points are then measured along instead (``factors.level_ground_factor``).
+
 Pure numpy: no GTSAM here, so the detector is tested on its own.
 """
 
@@ -129,3 +136,35 @@ def floor_mask(p_world: np.ndarray, T_world_base: np.ndarray, T_base_cam: np.nda
     idx = np.nonzero(cand)[0]
     mask[idx[fit.inliers]] = True
     return mask, fit
+
+
+def attitude_jitter_deg(z_axes: np.ndarray) -> float:
+    """Median angle (deg) between the z axes of consecutive keyframes' bases, (N, 3) in order.
+
+    Turning, driving up a ramp or standing still leave it near zero (a ramp tilts the base over a
+    few keyframes only, the median ignores them); a chassis rocking on its suspension moves it by
+    about the rocking amplitude. 0 for fewer than two axes.
+    """
+    z = np.asarray(z_axes, float)
+    if len(z) < 2:
+        return 0.0
+    cos = np.clip(np.einsum("ij,ij->i", z[1:], z[:-1]), -1.0, 1.0)
+    return float(np.degrees(np.median(np.arccos(cos))))
+
+
+def level_up(z_axes: np.ndarray, floor_normal: np.ndarray, select_deg: float) -> np.ndarray:
+    """The floor's normal for a rocking base (world frame, unit).
+
+    The mean z axis of the keyframes whose base lies within ``select_deg`` of the fitted floor
+    plane's normal ``floor_normal`` (world frame): rocking is zero-mean, so the mean over the window
+    removes it, and the selection keeps keyframes that stood on another plane (the other side of a
+    ramp's edge) out. The fitted normal itself when no keyframe is that close.
+    """
+    n = np.asarray(floor_normal, float)
+    n = n / np.linalg.norm(n)
+    z = np.asarray(z_axes, float).reshape(-1, 3)
+    near = z[np.einsum("ij,j->i", z, n) >= np.cos(np.radians(select_deg))]
+    if len(near) == 0:
+        return n
+    up = near.mean(axis=0)
+    return up / np.linalg.norm(up)
