@@ -9,7 +9,8 @@ Robust losses: GTSAM applies an M-estimator to the norm of the whitened residual
 square is chi-square distributed with the factor's dimension. :func:`robust_threshold` turns a
 confidence (``backend.robust_confidence``) into the threshold for a factor of dimension d,
 so a 2-D pixel, a 3-D planar odometry and the ground residual are judged alike (the ground factor is
-a bearing weighted on its elevation only, its azimuth nearly free: effectively 1-D, judged as such).
+a bearing weighted on its elevation only, its azimuth nearly free: effectively 1-D, judged as such;
+its variant for a rocking base, :func:`level_ground_factor`, is 1-D outright).
 """
 
 from __future__ import annotations
