@@ -468,9 +468,9 @@ class SlidingWindowBackend:
         """The floor's normal (world) to measure this keyframe's floor points along when the base rocks,
         else None (the native factor in the keyframe's own base frame).
 
-        Measured on 12 rendered sequences rocking by 0.7-2 deg (README, Performance): ATE 0.42x-1.71x of
+        Measured on 20 rendered sequences rocking by 0.7-2 deg (README, Performance): ATE 0.42x-1.71x of
         the native factor's, geometric mean 0.87x; wheel scale 0.02-0.59% off (mean 0.22%) instead of
-        0.02-0.82% (mean 0.30%). Level runs and the ramp never reach ``ground.rocking_jitter_deg``, so
+        0.02-0.82% (mean 0.32%). Level runs and the ramp never reach ``ground.rocking_jitter_deg``, so
         they keep the native factor, which also holds each keyframe's attitude to the floor (the level
         frame everywhere cost them 1.07x on average over ten seeds, the ramp 1.25x)."""
         g = self.cfg.ground
