@@ -7,7 +7,7 @@ import pytest
 
 from windowvo.backend import factors as fac
 from windowvo.backend.factors import C, L, X
-from windowvo.backend.ground import attitude_jitter_deg, fit_floor_plane, floor_mask, level_up
+from windowvo.backend.ground import FloorAttitude, attitude_jitter_deg, fit_floor_plane, floor_mask, level_up
 from windowvo.backend.smoother import SlidingWindowBackend, WheelCalibration
 from windowvo.config import BackendConfig, GroundConfig
 from windowvo.geometry import make_T, rpy_to_R
@@ -153,6 +153,50 @@ def test_level_ground_factor_measures_height_along_the_floor_normal_not_the_base
     assert f.unwhitenedError(raised)[0] - f.unwhitenedError(v)[0] == pytest.approx(0.01, abs=1e-12)
     for Ha, Hn in zip(_analytic_jacobians(f, v), _numerical_jacobians(f, v)):
         assert np.allclose(Ha, Hn, atol=1e-6), (Ha, Hn)
+
+
+def test_ground_factor_along_a_learnt_floor_normal():
+    """With the base z axis as the normal the factor is the plain one; with a tilted normal a point on the
+    plane n . q = offset costs nothing and one raised along n by dz costs dz / sigma."""
+    cfg = BackendConfig(ground={"robust": "none"})
+    sigma = 0.0135
+    T = make_T(rpy_to_R(0.0, 0.0, 0.7), [1.0, 2.0, 0.0])
+    p_base = np.array([2.0, 0.6, 0.0])
+    v = gtsam.Values()
+    v.insert(X(1), gtsam.Pose3(T))
+    v.insert(L(7), gtsam.Point3(T[:3, :3] @ (p_base + [0, 0, 0.004]) + T[:3, 3]))
+    plain = fac.ground_factor(X(1), L(7), p_base, 0.0, sigma, cfg)
+    along_z = fac.ground_factor(X(1), L(7), p_base, 0.0, sigma, cfg, np.array([0.0, 0.0, 1.0]))
+    assert along_z.error(v) == plain.error(v)
+    n = rpy_to_R(0.0, np.radians(-1.0), 0.0)[:, 2]  # a floor tilted by 1 deg in the base frame
+    offset = -0.01
+    q = np.array([2.0, 0.6, 0.0])
+    q = q - (n @ q - offset) * n  # on the plane
+    f = fac.ground_factor(X(1), L(7), q, offset, sigma, cfg, n)
+    for dz in (0.0, 0.005, -0.01):
+        vv = gtsam.Values()
+        vv.insert(X(1), gtsam.Pose3(T))
+        vv.insert(L(7), gtsam.Point3(T[:3, :3] @ (q + dz * n) + T[:3, 3]))
+        assert np.sqrt(2 * f.error(vv)) == pytest.approx(abs(dz) / sigma, rel=0.02, abs=1e-6)
+
+
+def test_floor_attitude_is_the_median_of_the_fits():
+    """A mount pitched by 1 deg: noisy fits around the tilted normal, a few off by a ramp's 8 deg; the
+    learnt normal is within 0.1 deg of the truth, ready only from min_fits on, and forgets beyond max_fits."""
+    rng = np.random.default_rng(6)
+    truth = rpy_to_R(0.0, np.radians(1.0), 0.0)[:, 2]
+    fa = FloorAttitude(min_fits=10, max_fits=60)
+    assert not fa.ready and np.allclose(fa.normal, [0, 0, 1])
+    for i in range(60):
+        pitch = 8.0 if i % 10 == 3 else 1.0 + rng.normal(0, 0.3)
+        fa.add(rpy_to_R(np.radians(rng.normal(0, 0.3)), np.radians(pitch), 0.0)[:, 2])
+        assert fa.ready == (i + 1 >= 10)
+    assert np.degrees(np.arccos(np.clip(fa.normal @ truth, -1, 1))) < 0.1
+    tx, ty = fa.tilt_deg()
+    assert tx == pytest.approx(1.0, abs=0.1) and abs(ty) < 0.1
+    for _ in range(60):  # the mount was corrected: the old fits leave
+        fa.add(np.array([0.0, 0.0, 1.0]))
+    assert np.allclose(fa.normal, [0, 0, 1])
 
 
 def _tilted_z(roll_deg: np.ndarray, pitch_deg: np.ndarray) -> np.ndarray:

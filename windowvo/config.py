@@ -167,6 +167,13 @@ class GroundConfig(_Section):
                                              "with 0.5-2.5 deg of rocking. null: never")
     level_select_deg: float = Field(2.0, gt=0, le=20, description="level frame: the mean z axis of the window's "
                                     "keyframes within this angle of the fitted floor plane's normal")
+    mount_calibration: bool = Field(False, description="use the floor's normal in the base frame learnt from the "
+                                    "floor planes fitted so far (for a camera mount pitched or rolled against "
+                                    "T_base_cam: 1 deg made 5.5% of scale error on the rendered loop), measure "
+                                    "floor heights along it, and tie no floor point before it is learnt; off: the "
+                                    "base z axis (the normal is learnt and reported either way)")
+    mount_min_fits: int = Field(10, ge=1, description="floor plane fits before the learnt normal is reported and used")
+    mount_fits: int = Field(200, ge=1, description="the learnt normal is the median of this many latest fits")
 
 
 class WheelCalibrationConfig(_Section):

@@ -287,6 +287,8 @@ class Pipeline:
             latency_ms=round(latency_ms, 3),
             base_rocking_deg=round(bo.base_rocking_deg, 4) if bo is not None else float("nan"),
             level_frame=bo.level_frame if bo is not None else False,
+            floor_tilt_x_deg=round(bo.floor_tilt_x_deg, 4) if bo is not None else float("nan"),
+            floor_tilt_y_deg=round(bo.floor_tilt_y_deg, 4) if bo is not None else float("nan"),
         )
 
 

@@ -126,6 +126,10 @@ class BackendOutput:
     # level frame.
     base_rocking_deg: float = float("nan")
     level_frame: bool = False  # this keyframe's floor points were measured in the level frame
+    # The floor's normal in the base frame as learnt so far (ground.mount_calibration): its tilt toward the
+    # base's +x and +y in degrees; nan until enough floor planes were fitted.
+    floor_tilt_x_deg: float = float("nan")
+    floor_tilt_y_deg: float = float("nan")
 
 
 @dataclass
@@ -178,3 +182,5 @@ class FrameRecord:
     latency_ms: float = 0.0
     base_rocking_deg: float = float("nan")
     level_frame: bool = False
+    floor_tilt_x_deg: float = float("nan")
+    floor_tilt_y_deg: float = float("nan")

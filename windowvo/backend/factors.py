@@ -240,7 +240,7 @@ GROUND_AZIMUTH_SIGMA_RAD = 1.0  # the ground factor's azimuth: left to the proje
 
 
 def ground_factor(pose_key: int, landmark_key: int, p_base: np.ndarray, floor_z: float, sigma_m: float,
-                  cfg: BackendConfig):
+                  cfg: BackendConfig, normal_base: np.ndarray | None = None):
     """Ties a floor landmark to the ground plane of the keyframe that observes it.
 
     Seen from the base origin (on the floor), a floor point lies on the horizon of the base frame: its
@@ -252,17 +252,25 @@ def ground_factor(pose_key: int, landmark_key: int, p_base: np.ndarray, floor_z:
     also hold the base's attitude (a chassis rocking on its suspension). The azimuth gets a loose
     1 rad sigma (the projection factors fix it). Native C++: a Python ``CustomFactor`` cost about 4 ms of
     a 15 ms update in callbacks. Robust, chi-square threshold of 1-D.
+
+    ``normal_base``: the floor's normal in the base frame when it is not the base z axis (a camera mount
+    pitched or rolled against ``T_base_cam``, see ``ground.FloorAttitude``); the floor is then the plane
+    ``normal_base . q = floor_z`` and heights and elevations are measured along that normal. With the z
+    axis the factor is the same bit for bit.
     """
-    x, y = float(p_base[0]), float(p_base[1])
-    r = float(np.hypot(x, y))
+    n = np.array([0.0, 0.0, 1.0]) if normal_base is None else np.asarray(normal_base, float) / np.linalg.norm(normal_base)
+    p = np.asarray(p_base, float)
+    q = p - (n @ p - floor_z) * n  # the point moved along n onto the floor {q : n . q = floor_z}
+    r = float(np.linalg.norm(q - (n @ q) * n))  # its distance from the base origin along the floor
     if r < 1e-3:
         raise ValueError("a floor point must lie away from the base origin")
-    measured = gtsam.Unit3(np.array([x, y, float(floor_z)]))
+    measured = gtsam.Unit3(q)
     B = measured.basis()  # 3 x 2: the tangent plane of the measured bearing
-    e = B.T @ np.array([0.0, 0.0, 1.0])
-    e /= np.linalg.norm(e)  # elevation direction in tangent coordinates
+    e = B.T @ n
+    s_e = float(np.linalg.norm(e))
+    e /= s_e  # elevation direction (toward n) in tangent coordinates
     a = np.array([-e[1], e[0]])  # azimuth direction
-    sigma_elev = sigma_m * r / (r * r + floor_z * floor_z)  # d(elevation)/dz = r / (r^2 + z^2)
+    sigma_elev = sigma_m * s_e / float(np.linalg.norm(q))  # d(elevation)/d(height): r / |q|^2 with n = z
     info = np.outer(e, e) / sigma_elev**2 + np.outer(a, a) / GROUND_AZIMUTH_SIGMA_RAD**2
     g = cfg.ground
     noise = robust(gtsam.noiseModel.Gaussian.Information(info), g.robust, threshold(g.robust_k, 1, cfg))

@@ -45,7 +45,7 @@ from ..geometry import inv_T, make_T, rot_z
 from ..types import BackendOutput, BackendStatus, FrontendOutput, GateOutcome, OdometryStep, ScaleSource
 from . import factors as fac
 from .factors import C, L, X
-from .ground import PlaneFit, attitude_jitter_deg, floor_mask, level_up
+from .ground import FloorAttitude, PlaneFit, attitude_jitter_deg, floor_mask, level_up
 from .landmarks import LandmarkManager, reprojection_errors, reprojection_rms, triangulate_midpoint
 
 log = logging.getLogger(__name__)
@@ -108,6 +108,9 @@ class SlidingWindowBackend:
                         "or backend.ground.camera_height_m)", self.camera_height_m)
         self.ground_sigma_m = g.sigma_height_fraction * self.camera_height_m
         self._rng = np.random.default_rng(g.seed)
+        # The floor's attitude in the base frame is always learnt (the summary reports it: a tilted mount
+        # shows there); with ground.mount_calibration it is also used.
+        self.floor_attitude = FloorAttitude(g.mount_min_fits, g.mount_fits)
         # Metric scale: from the wheels, or (monocular) once the ground plane has fixed the first baseline.
         self.metric = use_odometry
         self.n_ground_factors = 0
@@ -344,7 +347,9 @@ class SlidingWindowBackend:
                 if floor:
                     if up_world is None:
                         p_base = (p - T_guess[:3, 3]) @ T_guess[:3, :3]
-                        graph.add(fac.ground_factor(X(k), key, p_base, self.floor_z, self.ground_sigma_m, cfg))
+                        n_base = self.floor_normal_base()
+                        graph.add(fac.ground_factor(X(k), key, p_base, self.floor_offset(n_base),
+                                                    self.ground_sigma_m, cfg, n_base))
                     else:
                         graph.add(fac.level_ground_factor(X(k), key, up_world, self.floor_z, self.ground_sigma_m,
                                                           cfg))
@@ -462,7 +467,28 @@ class SlidingWindowBackend:
         old_pts = self.lm.positions()[1]
         pts = np.concatenate([new_pts, old_pts])
         mask, fit = floor_mask(pts, T_guess, self.T_base_cam, self.camera_height_m, self.cfg.ground, self._rng)
+        fa = self.floor_attitude
+        if fit is not None:
+            fa.add(fit.normal)
+            if self.cfg.ground.mount_calibration and not fa.ready:
+                # Still learning the floor's attitude on the mount: floor points tied to a floor the mount
+                # may be tilted against would set a wrong scale (and the wheel calibration with it), which
+                # the calibration's slow random walk then carries for the rest of the run.
+                return np.zeros(len(born), bool), fit
         return mask[: len(born)], fit
+
+    def floor_offset(self, n_base: np.ndarray | None) -> float:
+        """The floor as the plane ``n_base . q = offset`` in the base frame: the camera at its known height
+        above it (with the base z axis: the floor's z, 0 unless the camera height is overridden)."""
+        if n_base is None:
+            return self.floor_z
+        return float(n_base @ self.T_base_cam[:3, 3]) - self.camera_height_m
+
+    def floor_normal_base(self) -> np.ndarray | None:
+        """The floor's normal in the base frame learnt so far (None: the base z axis)."""
+        if not self.cfg.ground.mount_calibration or not self.floor_attitude.ready:
+            return None
+        return self.floor_attitude.normal
 
     def _level_up(self, T_guess: np.ndarray, fit: PlaneFit | None) -> np.ndarray | None:
         """The floor's normal (world) to measure this keyframe's floor points along when the base rocks,
@@ -475,14 +501,17 @@ class SlidingWindowBackend:
         frame everywhere cost them 1.07x on average over ten seeds, the ramp 1.25x)."""
         g = self.cfg.ground
         w0 = self.window_start()
-        z_axes = np.array([self.kf_pose[kk][:3, 2] for kk in range(w0, self.k) if kk in self.kf_pose])
+        Rs = [self.kf_pose[kk][:3, :3] for kk in range(w0, self.k) if kk in self.kf_pose]
+        z_axes = np.array([R[:, 2] for R in Rs]).reshape(-1, 3)
         self.base_rocking_deg = attitude_jitter_deg(z_axes) if len(z_axes) >= MIN_ROCKING_KEYFRAMES else float("nan")
         if g.rocking_jitter_deg is None or fit is None or not self.base_rocking_deg > g.rocking_jitter_deg:
             return None
         if self.n_level_ground_factors == 0:
             log.info("keyframe %d: the base rocks (median tilt change %.2f deg between keyframes): floor points "
                      "are measured along the floor's normal while it does", self.k, self.base_rocking_deg)
-        return level_up(z_axes, T_guess[:3, :3] @ fit.normal, g.level_select_deg)
+        n_base = self.floor_normal_base()
+        floor_normals = z_axes if n_base is None else np.array([R @ n_base for R in Rs])
+        return level_up(floor_normals, T_guess[:3, :3] @ fit.normal, g.level_select_deg)
 
     def _submit(self, graph, values, ts_map, remove) -> list[int]:
         """One smoother update; returns the smoother's indices of the new factors."""
@@ -579,6 +608,7 @@ class SlidingWindowBackend:
         _, p_seen, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, self.k)
         rms = reprojection_rms(reprojection_errors(self.camera, self.kf_pose[self.k], self.T_base_cam, p_seen, uv))
         w0 = self.window_start()
+        tilt = self.floor_attitude.tilt_deg() if self.floor_attitude.ready else (float("nan"), float("nan"))
         return BackendOutput(
             frame_index=fo.frame_index,
             timestamp=fo.timestamp,
@@ -594,6 +624,8 @@ class SlidingWindowBackend:
             n_ground_factors=n_ground,
             base_rocking_deg=self.base_rocking_deg,
             level_frame=self.level_frame,
+            floor_tilt_x_deg=tilt[0],
+            floor_tilt_y_deg=tilt[1],
             wheel_scale=self.calib.scale if self.calibrate else float("nan"),
             wheel_yaw_bias_per_m=self.calib.yaw_bias_per_m if self.calibrate else float("nan"),
         )
