@@ -208,18 +208,20 @@ def run_and_report(cfg: Config) -> RunResult:
         c = r.wheel_calibration
         lines.append(f"wheel calibration: scale {c.scale:.4f} ± {c.scale_sigma:.4f}, "
                      f"yaw bias {c.yaw_bias_per_m * 1000:.2f} ± {c.yaw_bias_sigma * 1000:.2f} mrad/m")
+    floor = []
     if summary["base_rocking_deg_median"] is not None:
-        lines.append(f"base rocking: median tilt change between keyframes {summary['base_rocking_deg_median']:.2f} "
-                     f"deg; floor points measured in a level frame at {summary['level_frame_keyframes']} keyframes")
+        floor.append(f"base rocking {summary['base_rocking_deg_median']:.2f} deg between keyframes (level frame at "
+                     f"{summary['level_frame_keyframes']} keyframes)")
     if summary["floor_tilt_deg"] is not None:
         tx, ty = summary["floor_tilt_deg"]
         used = "used" if cfg.backend.ground.mount_calibration else "not used"
-        lines.append(f"floor normal in the base frame: tilted {np.hypot(tx, ty):.2f} deg ({tx:+.2f} toward x, "
-                     f"{ty:+.2f} toward y; {used})")
+        floor.append(f"tilted {np.hypot(tx, ty):.2f} deg in the base frame ({tx:+.2f} x, {ty:+.2f} y; {used})")
         if np.hypot(tx, ty) > MOUNT_TILT_WARN_DEG and not cfg.backend.ground.mount_calibration:
             log.warning("the floor is tilted %.2f deg in the base frame: T_base_cam's pitch or roll looks off by about "
                         "that, which biases the ground cue's scale (0.5 deg: about 3%%); correct T_base_cam or set "
                         "backend.ground.mount_calibration: true", np.hypot(tx, ty))
+    if floor:
+        lines.append("floor: " + "; ".join(floor))
     if report.accuracy is not None:
         lines.append("accuracy (smoothed): " + report.accuracy.summary(metric=r.metric))
     if report.online_accuracy is not None:
