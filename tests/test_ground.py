@@ -194,6 +194,9 @@ def test_floor_attitude_is_the_median_of_the_fits():
     assert np.degrees(np.arccos(np.clip(fa.normal @ truth, -1, 1))) < 0.1
     tx, ty = fa.tilt_deg()
     assert tx == pytest.approx(1.0, abs=0.1) and abs(ty) < 0.1
+    # standard error of the median: 1.25 * hypot(0.3, 0.3) / sqrt(60) = 0.07 deg, the ramp's fits aside
+    assert 0.04 < fa.standard_error_deg() < 0.11
+    assert FloorAttitude(1, 10).standard_error_deg() == float("inf")
     for _ in range(60):  # the mount was corrected: the old fits leave
         fa.add(np.array([0.0, 0.0, 1.0]))
     assert np.allclose(fa.normal, [0, 0, 1])

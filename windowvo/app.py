@@ -126,8 +126,9 @@ def _run_job(cfg: Config, progress, worker: BackendWorker | None) -> JobReport:
     return report
 
 
-# Above this tilt of the floor in the base frame (deg) the summary suspects the camera mount: level rendered
-# runs learn 0.03-0.1 deg, rocking ones up to 0.2, a mount pitched by 0.5 / 1 deg 0.46 / 0.89.
+# Above this tilt of the floor in the base frame (deg), and three standard errors, the summary suspects the
+# camera mount: level rendered runs learn 0.03-0.1 deg, rocking ones up to 0.36 (2.5 deg of rocking, few fits:
+# standard error larger), a mount pitched by 0.5 / 1 deg 0.46 / 0.89.
 MOUNT_TILT_WARN_DEG = 0.3
 
 
@@ -136,11 +137,12 @@ def floor_summary(records: list[FrameRecord]) -> dict:
     ``base_rocking_deg``, None when never judged), at how many keyframes floor points were tied to the floor in
     a level frame because of it, and the floor's tilt in the base frame at the end (None: too few floor fits)."""
     rocking = [rec.base_rocking_deg for rec in records if rec.is_keyframe and np.isfinite(rec.base_rocking_deg)]
-    tilts = [(rec.floor_tilt_x_deg, rec.floor_tilt_y_deg) for rec in records
+    tilts = [(rec.floor_tilt_x_deg, rec.floor_tilt_y_deg, rec.floor_tilt_se_deg) for rec in records
              if rec.is_keyframe and np.isfinite(rec.floor_tilt_x_deg)]
     return {"base_rocking_deg_median": round(float(np.median(rocking)), 4) if rocking else None,
             "level_frame_keyframes": sum(1 for rec in records if rec.level_frame),
-            "floor_tilt_deg": None if not tilts else [round(float(v), 3) for v in tilts[-1]]}
+            "floor_tilt_deg": None if not tilts else [round(float(v), 3) for v in tilts[-1][:2]],
+            "floor_tilt_se_deg": None if not tilts else round(float(tilts[-1][2]), 3)}
 
 
 def _progress_bar(cfg: Config, total: int):
@@ -215,8 +217,10 @@ def run_and_report(cfg: Config) -> RunResult:
     if summary["floor_tilt_deg"] is not None:
         tx, ty = summary["floor_tilt_deg"]
         used = "used" if cfg.backend.ground.mount_calibration else "not used"
-        floor.append(f"tilted {np.hypot(tx, ty):.2f} deg in the base frame ({tx:+.2f} x, {ty:+.2f} y; {used})")
-        if np.hypot(tx, ty) > MOUNT_TILT_WARN_DEG and not cfg.backend.ground.mount_calibration:
+        se = summary["floor_tilt_se_deg"]
+        floor.append(f"tilted {np.hypot(tx, ty):.2f} ± {se:.2f} deg in the base frame ({tx:+.2f} x, {ty:+.2f} y; "
+                     f"{used})")
+        if (np.hypot(tx, ty) > max(MOUNT_TILT_WARN_DEG, 3 * se)) and not cfg.backend.ground.mount_calibration:
             log.warning("the floor is tilted %.2f deg in the base frame: T_base_cam's pitch or roll looks off by about "
                         "that, which biases the ground cue's scale (0.5 deg: about 3%%); correct T_base_cam or set "
                         "backend.ground.mount_calibration: true", np.hypot(tx, ty))

@@ -289,6 +289,7 @@ class Pipeline:
             level_frame=bo.level_frame if bo is not None else False,
             floor_tilt_x_deg=round(bo.floor_tilt_x_deg, 4) if bo is not None else float("nan"),
             floor_tilt_y_deg=round(bo.floor_tilt_y_deg, 4) if bo is not None else float("nan"),
+            floor_tilt_se_deg=round(bo.floor_tilt_se_deg, 4) if bo is not None else float("nan"),
         )
 
 

@@ -130,6 +130,7 @@ class BackendOutput:
     # base's +x and +y in degrees; nan until enough floor planes were fitted.
     floor_tilt_x_deg: float = float("nan")
     floor_tilt_y_deg: float = float("nan")
+    floor_tilt_se_deg: float = float("nan")  # its standard error
 
 
 @dataclass
@@ -184,3 +185,4 @@ class FrameRecord:
     level_frame: bool = False
     floor_tilt_x_deg: float = float("nan")
     floor_tilt_y_deg: float = float("nan")
+    floor_tilt_se_deg: float = float("nan")

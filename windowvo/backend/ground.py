@@ -211,6 +211,15 @@ class FloorAttitude:
         x, y = np.median(np.asarray(self._xy), axis=0)
         return np.array([x, y, np.sqrt(max(1.0 - x * x - y * y, 0.0))])
 
+    def standard_error_deg(self) -> float:
+        """Standard error of the learnt tilt (deg): the median's, 1.25 sigma / sqrt(n), with the fits' sigma
+        from their median absolute deviation (a ramp's few fits do not inflate it)."""
+        if len(self._xy) < 2:
+            return float("inf")
+        xy = np.degrees(np.arcsin(np.clip(np.asarray(self._xy), -1.0, 1.0)))
+        sigma = 1.4826 * np.median(np.abs(xy - np.median(xy, axis=0)), axis=0)
+        return float(1.2533 * np.hypot(*sigma) / np.sqrt(len(xy)))
+
     def tilt_deg(self) -> tuple[float, float]:
         """The normal's tilt toward the base's +x (forward) and +y (left), in degrees."""
         n = self.normal

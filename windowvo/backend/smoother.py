@@ -626,6 +626,7 @@ class SlidingWindowBackend:
             level_frame=self.level_frame,
             floor_tilt_x_deg=tilt[0],
             floor_tilt_y_deg=tilt[1],
+            floor_tilt_se_deg=self.floor_attitude.standard_error_deg() if self.floor_attitude.ready else float("nan"),
             wheel_scale=self.calib.scale if self.calibrate else float("nan"),
             wheel_yaw_bias_per_m=self.calib.yaw_bias_per_m if self.calibrate else float("nan"),
         )
