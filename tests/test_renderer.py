@@ -91,3 +91,28 @@ def test_rendering_is_deterministic():
     b, _ = Renderer(build_world(SynthSpec(path=PathKind.FIGURE_EIGHT, duration_s=5.0, seed=4)).scene, w.camera).render(T, 1.0)
     assert np.array_equal(a, b)
     assert a.std() > 0.05  # textured, not flat
+
+
+def test_a_calibration_error_changes_camera_yaml_only(tmp_path):
+    """calib_pitch_error_deg: camera.yaml claims a camera pitched that much further down; the images and
+    the ground truth are those of the true mount."""
+    from windowvo.io.sequence import read_camera_yaml
+    from windowvo.synth.generate import camera_for, generate_sequence
+
+    spec = SynthSpec(path=PathKind.LOOP, duration_s=0.3, seed=3, width=160, height=120, fx=85.0)
+    wrong = SynthSpec(path=PathKind.LOOP, duration_s=0.3, seed=3, width=160, height=120, fx=85.0,
+                      calib_pitch_error_deg=1.0)
+    generate_sequence(tmp_path / "true", spec)
+    generate_sequence(tmp_path / "wrong", wrong)
+    T_true = read_camera_yaml(tmp_path / "true" / "camera.yaml").T_base_cam
+    T_claimed = read_camera_yaml(tmp_path / "wrong" / "camera.yaml").T_base_cam
+    assert np.allclose(T_true, camera_for(spec).T_base_cam)
+    R_rel = T_true[:3, :3].T @ T_claimed[:3, :3]  # in the camera frame: a rotation about its x axis
+    angle = np.degrees(np.arccos(np.clip((np.trace(R_rel) - 1) / 2, -1, 1)))
+    assert angle == pytest.approx(1.0, abs=1e-6) and abs(R_rel[0, 0] - 1.0) < 1e-12
+    # looking further down: the claimed optical axis (base frame) points lower than the true one
+    assert T_claimed[2, 2] < T_true[2, 2]
+    assert np.allclose(T_claimed[:3, 3], T_true[:3, 3])
+    assert (tmp_path / "true" / "groundtruth.txt").read_text() == (tmp_path / "wrong" / "groundtruth.txt").read_text()
+    for a, b in zip(sorted((tmp_path / "true" / "images").iterdir()), sorted((tmp_path / "wrong" / "images").iterdir())):
+        assert a.read_bytes() == b.read_bytes()

@@ -52,6 +52,9 @@ def main(argv=None) -> int:
     p.add_argument("--distortion", default=None,
                    help="comma-separated coefficients: radtan k1,k2,p1,p2[,k3]; equidistant k1,k2,k3,k4")
     p.add_argument("--vibration-deg", type=float, default=0.0, help="roll/pitch vibration amplitude")
+    p.add_argument("--calib-pitch-error-deg", type=float, default=0.0,
+                   help="camera.yaml claims the camera pitched down this much more than it is (a mount off its "
+                        "calibration)")
     p.add_argument("--ramp-height", type=float, default=0.0, help="ramp height in m (path=ramp uses 0.6 if 0)")
     p.add_argument("--obstacles", type=int, default=10)
     p.add_argument("--moving", type=int, default=0, help="moving obstacles crossing the path")
@@ -83,7 +86,7 @@ def main(argv=None) -> int:
         spec = SynthSpec(
             path=PathKind(a.path), duration_s=a.duration, fps=a.fps, speed=a.speed, seed=a.seed,
             width=a.width, height=a.height, **lens,
-            vibration_deg=a.vibration_deg, ramp_height_m=a.ramp_height, n_obstacles=a.obstacles, n_moving=a.moving,
+            vibration_deg=a.vibration_deg, calib_pitch_error_deg=a.calib_pitch_error_deg, ramp_height_m=a.ramp_height, n_obstacles=a.obstacles, n_moving=a.moving,
             image_noise=a.image_noise, exposure_variation=a.exposure, exposure_jumps=a.exposure_jumps,
             wheel=WheelErrorModel(scale_error=a.odo_scale_error, yaw_bias_per_m=a.odo_yaw_bias,
                                   distance_noise=a.odo_noise, yaw_noise=a.odo_noise, slip_windows=_ranges(a.slip)),

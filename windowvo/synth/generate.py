@@ -7,7 +7,7 @@ odometry.csv, groundtruth.txt). Everything is deterministic for ``spec.seed``.
 from __future__ import annotations
 
 import enum
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -77,6 +77,9 @@ class SynthSpec:
     distortion: tuple[float, ...] = ()
     camera_height_m: float = 0.45
     camera_pitch_deg: float = 8.0
+    # The calibration written to camera.yaml claims the camera pitched down by this much more than it is (a
+    # mount off its T_base_cam); the images and the ground truth keep the true mount.
+    calib_pitch_error_deg: float = 0.0
     vibration_deg: float = 0.0  # roll/pitch vibration amplitude
     ramp_height_m: float = 0.0  # >0 puts a ramp in the path (use with path=ramp)
     floor_contrast: float = 1.0  # floor texture contrast (0: a featureless floor)
@@ -270,7 +273,8 @@ def generate_sequence(out: Path, spec: SynthSpec, progress: bool = False) -> Syn
             print(f"rendered {k}/{len(keep)}", flush=True)
     times = times_all[keep]
     (out / "times.txt").write_text("".join(f"{t:.6f}\n" for t in times))
-    write_camera_yaml(out / "camera.yaml", cam)
+    claimed = camera_for(replace(spec, camera_pitch_deg=spec.camera_pitch_deg + spec.calib_pitch_error_deg))
+    write_camera_yaml(out / "camera.yaml", claimed if spec.calib_pitch_error_deg else cam)
     write_tum(out / "groundtruth.txt", times, np.stack(gt_poses), header="ground truth: T_world_base (TUM)")
     odo = simulate_wheel_odometry(world, spec.wheel, spec.seed, "synthetic")
     write_odometry_csv(out / "odometry.csv", odo)
