@@ -4,17 +4,30 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from conftest import make_config
 
-from windowvo.app import run_job
+from windowvo.app import floor_summary, run_job
 from windowvo.errors import WindowVOError
 from windowvo.parallel import BackendWorker
+from windowvo.synth.paths import PathKind
 
 
-def test_pipelined_equals_sequential(short_loop, tmp_path):
+@pytest.mark.parametrize("case", ["level", "rocking_tilted_mount"])
+def test_pipelined_equals_sequential(short_loop, seq_factory, tmp_path, case):
+    """Also on a rocking base whose camera.yaml is 0.5 deg off, with the mount calibration on: the level
+    frame's Python factor and the learnt floor normal are built in the worker process."""
+    seq, backend = short_loop, {}
+    if case == "rocking_tilted_mount":
+        seq = seq_factory("short_rocking_tilted", path=PathKind.FIGURE_EIGHT, duration_s=12.0, seed=8,
+                          vibration_deg=1.0, calib_pitch_error_deg=0.5)
+        backend = {"ground": {"mount_calibration": True}}
     reps = {}
     for mode in ("sequential", "pipelined"):
-        reps[mode] = run_job(make_config(short_loop, tmp_path / mode, run_mode=mode))
+        reps[mode] = run_job(make_config(seq, tmp_path / mode, run_mode=mode, backend=backend))
+    if case == "rocking_tilted_mount":
+        floor = floor_summary(reps["pipelined"].result.records)
+        assert floor["level_frame_keyframes"] > 0 and floor["floor_tilt_deg"] is not None, floor
     for name in ("trajectory.txt", "trajectory_online.txt"):
         a = (tmp_path / "sequential" / name).read_text()
         b = (tmp_path / "pipelined" / name).read_text()
