@@ -83,30 +83,11 @@ def test_figure_eight_with_vibration_scale_error_shrinks(seq_factory, tmp_path):
     assert abs(est_scale - 1.02) <= 0.005, est_scale
 
 
-def _mount_pitched(seq, out, pitch_deg: float):
-    """The same sequence, its calibration claiming a camera pitched ``pitch_deg`` more than it is."""
-    import yaml
-
-    from windowvo.geometry import rpy_to_R
-
-    out.mkdir(parents=True)
-    for entry in seq.iterdir():
-        if entry.name != "camera.yaml":
-            (out / entry.name).symlink_to(entry.resolve())
-    cam = yaml.safe_load((seq / "camera.yaml").read_text())
-    T = np.array(cam["T_base_cam"], float).reshape(4, 4)
-    T[:3, :3] = T[:3, :3] @ rpy_to_R(np.radians(pitch_deg), 0.0, 0.0)  # about the camera's x axis
-    cam["T_base_cam"] = [float(v) for v in T.ravel()]
-    (out / "camera.yaml").write_text(yaml.safe_dump(cam))
-    return out
-
-
 def test_mount_pitched_against_its_calibration(seq_factory, tmp_path):
     """A camera pitched 1 deg off its T_base_cam: the floor's tilt in the base frame shows it, and with
     ground.mount_calibration the scale error it causes is gone."""
-    seq = seq_factory("loop_mount", path=PathKind.LOOP, duration_s=25.0, seed=39,
-                      wheel=WheelErrorModel(scale_error=0.02))
-    tilted = _mount_pitched(seq, tmp_path / "seq", 1.0)
+    tilted = seq_factory("loop_mount", path=PathKind.LOOP, duration_s=25.0, seed=39, calib_pitch_error_deg=1.0,
+                         wheel=WheelErrorModel(scale_error=0.02))
     plain = _run(tilted, tmp_path / "plain")
     fixed = _run(tilted, tmp_path / "fixed", ground={"mount_calibration": True})
     floor = floor_summary(plain.result.records)
@@ -118,8 +99,9 @@ def test_mount_pitched_against_its_calibration(seq_factory, tmp_path):
           f"{est_scale:.4f} (true 1.020)")
     assert tilt is not None and np.hypot(*tilt) > 0.6, tilt
     assert np.hypot(*tilt) > max(MOUNT_TILT_WARN_DEG, 3 * floor["floor_tilt_se_deg"]), floor  # the run warns
-    # Not all of it: the learnt tilt is about 0.1 deg off (1.06-1.12 here), which leaves 0.2-0.6 % of scale
-    # (on the mis-pitched benchmark loops and here), against 3.5-5.5 % without the mount calibration.
+    # Not all of it: the learnt tilt can be about 0.1 deg off, which leaves 0.2-0.6 % of scale (mis-pitched
+    # benchmark loops; here 0.27 %), against 3.5-8 % without the mount calibration. The 1 % bound was set after
+    # the first measurement: 0.64 % on this loop with the mount pitched the other way (learnt tilt 1.06-1.12).
     assert abs(est_scale - 1.02) <= 0.01, est_scale
     assert f.ate_se3_rmse_m <= 0.25 * p.ate_se3_rmse_m, (p, f)
 

@@ -195,10 +195,6 @@ class FloorAttitude:
         self._xy.append((float(n[0]), float(n[1])))
 
     @property
-    def n_fits(self) -> int:
-        return len(self._xy)
-
-    @property
     def ready(self) -> bool:
         return len(self._xy) >= self.min_fits
 

@@ -2,7 +2,9 @@
 
 ``SlidingWindowBackend.add_keyframe`` takes one keyframe's tracks and wheel step, asks the
 factor builders (``factors.py``) for factors, the landmark manager (``landmarks.py``) for
-landmarks, the ground cue (``ground.py``) for floor landmarks, and submits one update.
+landmarks, the ground cue (``ground.py``) for floor landmarks and the floor they are tied to (the
+keyframe's base frame; a level frame when the base rocks, ``_level_up``; a learnt mount tilt with
+``ground.mount_calibration``, ``floor_normal_base``), and submits one update.
 
 States: ``X(k)`` is ``T_world_base`` of keyframe k, ``L(id)`` the world position of the landmark
 of track ``id``, ``C(k)`` the wheel calibration (distance scale, yaw bias per metre) at keyframe k.
@@ -331,6 +333,8 @@ class SlidingWindowBackend:
             on_floor, floor_fit = self._floor_of(born, T_guess)
             born, on_floor = self._within_budget(born, on_floor, budgets)
             up_world = self._level_up(T_guess, floor_fit if on_floor.any() else None)
+            n_base = self.floor_normal_base()  # the same for all of this keyframe's floor points
+            floor_offset = self.floor_offset(n_base)
             cam_center = (T_guess @ self.T_base_cam)[:3, 3]
             for (tid, p), floor in zip(born, on_floor):
                 key = L(tid)
@@ -347,9 +351,8 @@ class SlidingWindowBackend:
                 if floor:
                     if up_world is None:
                         p_base = (p - T_guess[:3, 3]) @ T_guess[:3, :3]
-                        n_base = self.floor_normal_base()
-                        graph.add(fac.ground_factor(X(k), key, p_base, self.floor_offset(n_base),
-                                                    self.ground_sigma_m, cfg, n_base))
+                        graph.add(fac.ground_factor(X(k), key, p_base, floor_offset, self.ground_sigma_m, cfg,
+                                                    n_base))
                     else:
                         graph.add(fac.level_ground_factor(X(k), key, up_world, self.floor_z, self.ground_sigma_m,
                                                           cfg))
