@@ -224,7 +224,11 @@ class BackendConfig(_Section):
                                                               "removed")
     use_odometry: bool = Field(True, description="wheel-odometry between-factors (metric scale); false: monocular, up "
                                                  "to scale")
-    relinearize_threshold: float = Field(0.05, gt=0, description="iSAM2 relinearisation threshold")
+    relinearize_threshold: float = Field(0.05, gt=0, description="iSAM2 relinearisation threshold of the keyframe "
+                                         "poses (rad and m) and the wheel calibration")
+    landmark_relinearize_threshold_m: float | None = Field(
+        None, gt=0, description="iSAM2 relinearisation threshold of the landmark positions (m); default: "
+        "relinearize_threshold")
     relinearize_skip: int = Field(1, ge=1, le=100, description="iSAM2 relinearisation check every N updates")
     odometry: OdometryNoiseConfig = Field(OdometryNoiseConfig(), description="wheel-odometry factors: noise per metre, "
                                                                              "robust loss, gaps")

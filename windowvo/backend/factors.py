@@ -28,21 +28,23 @@ from ..config import BackendConfig, RobustKind
 FREE_SIGMA = 1e3
 # Yaw uncertainty added per radian of turn in one odometry step (wheel geometry errors grow with turning).
 YAW_SIGMA_PER_RAD = 0.02
+# Symbols of the smoother's states (each needs a relinearisation threshold, see relinearize_thresholds).
+POSE_SYMBOL, LANDMARK_SYMBOL, CALIBRATION_SYMBOL = "x", "l", "c"
 
 
 def X(k: int) -> int:
     """Key of ``T_world_base`` of keyframe k."""
-    return gtsam.symbol("x", k)
+    return gtsam.symbol(POSE_SYMBOL, k)
 
 
 def L(track_id: int) -> int:
     """Key of ``p_world_landmark`` of track ``track_id``."""
-    return gtsam.symbol("l", track_id)
+    return gtsam.symbol(LANDMARK_SYMBOL, track_id)
 
 
 def C(k: int) -> int:
     """Key of the wheel calibration (scale, yaw bias per metre) at keyframe k."""
-    return gtsam.symbol("c", k)
+    return gtsam.symbol(CALIBRATION_SYMBOL, k)
 
 
 # ---------------------------------------------------------------------------- robust losses
@@ -73,6 +75,22 @@ def threshold(explicit: float | None, dim: int, cfg: BackendConfig) -> float:
 
 
 # ---------------------------------------------------------------------------- priors
+
+
+def relinearize_thresholds(cfg: BackendConfig) -> float | gtsam.ISAM2ThresholdMap:
+    """iSAM2's relinearisation threshold, one for all states or one per kind of state.
+
+    Landmarks may have their own threshold in metres: most of an update's work is re-eliminating
+    the landmarks a new keyframe sees, and a landmark metres away that moved a few centimetres
+    changes its projections by a fraction of a pixel. A map must name every symbol in the graph."""
+    t = cfg.relinearize_threshold
+    if cfg.landmark_relinearize_threshold_m is None:
+        return t
+    m = gtsam.ISAM2ThresholdMap()
+    for sym, dim, value in ((POSE_SYMBOL, 6, t), (CALIBRATION_SYMBOL, 2, t),
+                            (LANDMARK_SYMBOL, 3, cfg.landmark_relinearize_threshold_m)):
+        m.insert((sym, np.full(dim, value)))
+    return m
 
 
 def first_pose_prior(key: int, T_world_base: np.ndarray, sigma: float = 1e-4):
@@ -184,12 +202,12 @@ def planar_odometry_sigmas(cfg: BackendConfig, distance: float, yaw: float) -> t
 
 
 def odometry_factors(cfg: BackendConfig, k: int, T_prev_cur: np.ndarray, distance: float,
-                     calibrate: bool) -> list[gtsam.NonlinearFactor]:
+                     calib_key: int | None) -> list[gtsam.NonlinearFactor]:
     """Wheel odometry between keyframes k-1 and k, as two parts of one measurement.
 
     The planar part (x, y, yaw) is what wheels measure: tight, growing with distance, under the
-    configured robust loss so that vision can overrule slip; with ``calibrate`` it goes through
-    the calibration state ``C(k)`` (a 3-D custom factor), else a plain between-factor. The vertical
+    configured robust loss so that vision can overrule slip; with a ``calib_key`` it goes through
+    that calibration state (a 3-D custom factor), else a plain between-factor. The vertical
     part (z, roll, pitch) only says "the robot drives on its wheels": loose and Gaussian, so it
     keeps linking the window where vision is briefly lost (a robust loss would let that link go).
     """
@@ -201,10 +219,10 @@ def odometry_factors(cfg: BackendConfig, k: int, T_prev_cur: np.ndarray, distanc
     vertical = gtsam.noiseModel.Diagonal.Sigmas(
         np.array([o.roll_pitch_sigma_rad, o.roll_pitch_sigma_rad, FREE_SIGMA, FREE_SIGMA, FREE_SIGMA, o.z_sigma_m]))
     out: list[gtsam.NonlinearFactor] = [gtsam.BetweenFactorPose3(X(k - 1), X(k), meas, vertical)]
-    if calibrate:
+    if calib_key is not None:
         noise = robust(gtsam.noiseModel.Diagonal.Sigmas(np.array([s_yaw, s_xy, s_xy])), o.robust, k_planar)
         m = np.array([T_prev_cur[0, 3], T_prev_cur[1, 3], yaw])
-        out.append(gtsam.CustomFactor(noise, [X(k - 1), X(k), C(k)],
+        out.append(gtsam.CustomFactor(noise, [X(k - 1), X(k), calib_key],
                                       partial(_calibrated_wheel_error, m, float(distance))))
     else:
         planar = gtsam.noiseModel.Diagonal.Sigmas(np.array([FREE_SIGMA, FREE_SIGMA, s_yaw, s_xy, s_xy, FREE_SIGMA]))
@@ -218,12 +236,13 @@ def calibration_prior(k: int, scale: float, yaw_bias: float, scale_sigma: float,
                                    gtsam.noiseModel.Diagonal.Sigmas(np.array([scale_sigma, yaw_bias_sigma])))
 
 
-def calibration_random_walk(cfg: BackendConfig, k: int, distance: float):
-    """The calibration drifts slowly: a random walk whose sigma grows with the square root of distance."""
+def calibration_random_walk(cfg: BackendConfig, k_prev: int, k: int, distance: float):
+    """The calibration drifts slowly: a random walk from ``C(k_prev)`` to ``C(k)`` whose sigma grows
+    with the square root of the distance driven between them."""
     wc = cfg.wheel_calibration
     d = np.sqrt(max(distance, 1e-3))
     sig = np.array([wc.scale_walk_per_sqrt_m * d, wc.yaw_bias_walk_per_sqrt_m * d])
-    return gtsam.BetweenFactorPoint2(C(k - 1), C(k), np.zeros(2), gtsam.noiseModel.Diagonal.Sigmas(sig))
+    return gtsam.BetweenFactorPoint2(C(k_prev), C(k), np.zeros(2), gtsam.noiseModel.Diagonal.Sigmas(sig))
 
 
 def monocular_motion_factor(k: int, T_prev_cur: np.ndarray, first_baseline: bool):

@@ -7,7 +7,8 @@ keyframe's base frame; a level frame when the base rocks, ``_level_up``; a learn
 ``ground.mount_calibration``, ``floor_normal_base``), and submits one update.
 
 States: ``X(k)`` is ``T_world_base`` of keyframe k, ``L(id)`` the world position of the landmark
-of track ``id``, ``C(k)`` the wheel calibration (distance scale, yaw bias per metre) at keyframe k.
+of track ``id``, ``C(k)`` the wheel calibration (distance scale, yaw bias per metre) from keyframe k on,
+one per block of keyframes that leave the window together.
 The camera enters the projection factors through ``T_base_cam`` (GTSAM's ``body_P_sensor``).
 
 Key lifecycle (designed so that GTSAM's fixed-lag smoother never meets a key it cannot handle,
@@ -18,11 +19,12 @@ see GTSAM issues #1638/#1795/#2478/#2741/#1976):
 * every new pose arrives with its timestamp and at least one factor (odometry, or a weak motion
   prior in monocular mode); every new landmark with its timestamp and at least two projection
   factors, all on poses still inside the window; every new calibration state ``C(k)`` with its
-  timestamp and a random-walk factor from ``C(k-1)`` (so the chain never breaks, with or without
-  a wheel reading at this step), and the wheel factor that uses it;
+  timestamp and a random-walk factor from the previous one (so the chain never breaks, with or
+  without a wheel reading at this step), and the wheel factor that uses it;
 * a landmark's timestamp is refreshed whenever a new keyframe observes it, so it is
-  marginalised together with the last pose that saw it; ``C(k)`` goes with ``X(k)``, and what the
-  old states knew about the calibration is carried forward by the marginal on ``C(k+1)``;
+  marginalised together with the last pose that saw it; so is the live calibration state's at
+  every keyframe of its block, so it leaves with its block's last pose, and what the old states
+  knew about the calibration is carried forward by the marginal on the next state;
 * every landmark is born with a weak position prior (sigma about its depth), so a landmark whose
   projection factors are removed as outliers, or lose their Jacobians when the point falls behind
   a camera, is never left undetermined; a floor landmark's ground factor is owned by it and
@@ -98,6 +100,8 @@ class SlidingWindowBackend:
         self.calibration_wanted = use_odometry and cfg.wheel_calibration.enabled
         self.calibrate = False
         self.calib_start = -1
+        self.calib_key = -1  # keyframe index of the live calibration state C(calib_key)
+        self.calib_distance_m = 0.0  # driven since C(calib_key) was created (its random walk)
         self.calib = WheelCalibration()
         # Ground cue: the camera's height above the floor, and where the floor is in the base frame.
         g = cfg.ground
@@ -141,7 +145,7 @@ class SlidingWindowBackend:
 
     def _new_smoother(self) -> None:
         params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.cfg.relinearize_threshold)
+        params.setRelinearizeThreshold(fac.relinearize_thresholds(self.cfg))
         params.relinearizeSkip = self.cfg.relinearize_skip
         # Reuse the slots of removed and marginalised factors: otherwise the factor list grows by
         # every factor ever added, and memory and update time with it.
@@ -275,23 +279,43 @@ class SlidingWindowBackend:
             graph.add(fac.first_pose_prior(X(0), np.eye(4)))
             return
         usable = odom is not None and self._odometry_usable(odom)
-        if self.calibrate:
-            # C(k) always joins with a prior (the first one) or a random walk from C(k-1), so the chain never breaks.
-            values.insert(C(k), np.array([self.calib.scale, self.calib.yaw_bias_per_m]))
-            stamps[C(k)] = float(k)
-            if k == self.calib_start:
-                wc = self.cfg.wheel_calibration
-                graph.add(fac.calibration_prior(k, self.calib.scale, self.calib.yaw_bias_per_m,
-                                                wc.scale_prior_sigma, wc.yaw_bias_prior_sigma))
-            else:
-                graph.add(fac.calibration_random_walk(self.cfg, k, odom.distance_m if odom is not None else 0.0))
+        calib_key = self._calibration_state(graph, values, stamps, k) if self.calibrate else None
+        if calib_key is not None and odom is not None:
+            self.calib_distance_m += odom.distance_m
         if usable:
             assert odom is not None
-            for f in fac.odometry_factors(self.cfg, k, odom.T_prev_cur, odom.distance_m, self.calibrate):
+            for f in fac.odometry_factors(self.cfg, k, odom.T_prev_cur, odom.distance_m, calib_key):
                 graph.add(f)
             return
         delta = inv_T(self.kf_pose[k - 1]) @ T_guess
         graph.add(fac.monocular_motion_factor(k, delta, first_baseline=(k == 1 and not self.use_odometry)))
+
+    def _calibration_block_starts(self, k: int) -> bool:
+        """A new calibration state starts with each block of keyframes that leaves the window together."""
+        return (k + self.cfg.window_keyframes - 1) % self.cfg.marginalize_every == 0
+
+    def _calibration_state(self, graph, values, stamps, k: int) -> int:
+        """Key of the calibration state keyframe k's wheel step goes through.
+
+        One state per block of ``marginalize_every`` keyframes (the blocks that leave the window
+        together), not per keyframe: the calibration drifts over tens of metres, a block spans a
+        metre or two, and every extra state joins the dense block of poses iSAM2 re-eliminates at
+        each update (one per keyframe made the back end ~50% slower). A new state ``C(k)`` joins with
+        a prior (the first one) or a random walk from the previous one, so the chain never breaks; a
+        state in use has its timestamp refreshed, so it leaves with the last pose whose step it holds."""
+        if k != self.calib_start and self.calib_key >= 0 and not self._calibration_block_starts(k):
+            stamps[C(self.calib_key)] = float(k)
+            return C(self.calib_key)
+        values.insert(C(k), np.array([self.calib.scale, self.calib.yaw_bias_per_m]))
+        stamps[C(k)] = float(k)
+        if k == self.calib_start or self.calib_key < 0:
+            wc = self.cfg.wheel_calibration
+            graph.add(fac.calibration_prior(k, self.calib.scale, self.calib.yaw_bias_per_m,
+                                            wc.scale_prior_sigma, wc.yaw_bias_prior_sigma))
+        else:
+            graph.add(fac.calibration_random_walk(self.cfg, self.calib_key, k, self.calib_distance_m))
+        self.calib_key, self.calib_distance_m = k, 0.0
+        return C(k)
 
     def _update(self, fo: FrontendOutput, odom, T_guess, use_vision: bool, allow_new: bool) -> tuple[int, int, int]:
         k = self.k
@@ -529,16 +553,16 @@ class SlidingWindowBackend:
         for kk in range(self.window_start(), self.k + 1):
             if est.exists(X(kk)):
                 self.kf_pose[kk] = est.atPose3(X(kk)).matrix()
-        if self.calibrate and est.exists(C(self.k)):
-            c = est.atPoint2(C(self.k))
+        if self.calibrate and est.exists(C(self.calib_key)):
+            c = est.atPoint2(C(self.calib_key))
             self.calib.scale, self.calib.yaw_bias_per_m = float(c[0]), float(c[1])
 
     def calibration_with_sigma(self) -> WheelCalibration:
         """The newest calibration estimate with its marginal sigmas (computed on request: costs a solve)."""
         cal = WheelCalibration(self.calib.scale, self.calib.yaw_bias_per_m)
-        if self.calibrate and self.estimate is not None and self.estimate.exists(C(self.k)):
+        if self.calibrate and self.estimate is not None and self.estimate.exists(C(self.calib_key)):
             try:
-                cov = self.smoother.marginalCovariance(C(self.k))
+                cov = self.smoother.marginalCovariance(C(self.calib_key))
                 cal.scale_sigma, cal.yaw_bias_sigma = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
             except RuntimeError as err:  # pragma: no cover - diagnostics only
                 log.debug("no marginal covariance of the calibration: %s", err)
@@ -569,7 +593,7 @@ class SlidingWindowBackend:
         values = gtsam.Values()
         stamps: dict[int, float] = {}
         if self.calibrate and self.calib_start >= self.k:  # the calibration started in the failed update
-            self.calibrate, self.calib_start = False, -1
+            self.calibrate, self.calib_start, self.calib_key = False, -1, -1
         if with_previous:
             T_prev = self.kf_pose.get(k - 1, np.eye(4))
             graph.add(fac.reset_prior(X(k - 1), T_prev, self.cfg))
@@ -582,16 +606,13 @@ class SlidingWindowBackend:
                 stamps[C(k - 1)] = float(k - 1)
                 graph.add(fac.calibration_prior(k - 1, self.calib.scale, self.calib.yaw_bias_per_m,
                                                 f * wc.scale_prior_sigma, f * wc.yaw_bias_prior_sigma))
+                self.calib_key, self.calib_distance_m = k - 1, 0.0
             self._motion_factors(graph, values, stamps, k, odom, T_guess)
         else:
             graph.add(fac.first_pose_prior(X(k), T_guess))
             if self.calibrate:  # the chain restarts here from the last estimate with the full prior
                 self.calib_start = k
-                wc = self.cfg.wheel_calibration
-                values.insert(C(k), np.array([self.calib.scale, self.calib.yaw_bias_per_m]))
-                stamps[C(k)] = float(k)
-                graph.add(fac.calibration_prior(k, self.calib.scale, self.calib.yaw_bias_per_m,
-                                                wc.scale_prior_sigma, wc.yaw_bias_prior_sigma))
+                self._calibration_state(graph, values, stamps, k)
         values.insert(X(k), gtsam.Pose3(T_guess))
         stamps[X(k)] = float(k)
         ts_map = gtsam.FixedLagSmootherKeyTimestampMap()
