@@ -130,7 +130,7 @@ class DegenerateOnce(SlidingWindowBackend):
     def _submit(self, graph, values, ts_map, remove):
         if self.k == self.inject_at and not self.injected:
             self.injected = True
-            key = gtsam.symbol("z", 1)
+            key = fac.L(10**9)  # a landmark key no track uses
             values.insert(key, gtsam.Point3(1.0, 2.0, 1.0))
             ts_map.insert((key, float(self.k)))
             graph.add(gtsam.GenericProjectionFactorCal3_S2(np.array([300.0, 200.0]), gtsam.noiseModel.Isotropic.Sigma(2, 1.0),
@@ -230,3 +230,29 @@ def test_landmark_positions_come_from_the_last_estimate_and_only_for_live_landma
     lm.read_estimate(est2)
     ids, pts = lm.positions()
     assert ids.tolist() == [4] and np.array_equal(pts, [[0.5, 0.5, 2.0]])
+
+
+@pytest.mark.parametrize("lm_threshold", [None, 0.3])
+def test_relinearisation_thresholds_cover_every_state_kind(lm_threshold):
+    """iSAM2 needs a threshold of the right size for every symbol in the graph (else it raises at the
+    first relinearisation check): poses, landmarks and calibration states, all moved far enough to be
+    relinearised."""
+    cfg = BackendConfig(landmark_relinearize_threshold_m=lm_threshold)
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(fac.relinearize_thresholds(cfg))
+    params.relinearizeSkip = 1
+    isam = gtsam.ISAM2(params)
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    values.insert(X(0), gtsam.Pose3(gtsam.Rot3(), np.array([1.0, 1.0, 1.0])))
+    values.insert(fac.L(1), gtsam.Point3(3.0, 2.0, 2.5))
+    values.insert(fac.C(0), np.array([2.0, 1.0]))
+    graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.1)))
+    graph.add(gtsam.PriorFactorPoint3(fac.L(1), gtsam.Point3(1.0, 0.0, 0.5), gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
+    graph.add(fac.calibration_prior(0, 1.0, 0.0, 0.03, 0.02))
+    isam.update(graph, values)
+    for _ in range(3):
+        isam.update()  # relinearisation checks over every variable
+    est = isam.calculateEstimate()
+    assert np.allclose(est.atPoint3(fac.L(1)), [1.0, 0.0, 0.5], atol=1e-6)
+    assert np.allclose(est.atPoint2(fac.C(0)), [1.0, 0.0], atol=1e-6)

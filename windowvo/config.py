@@ -227,8 +227,8 @@ class BackendConfig(_Section):
     relinearize_threshold: float = Field(0.05, gt=0, description="iSAM2 relinearisation threshold of the keyframe "
                                          "poses (rad and m) and the wheel calibration")
     landmark_relinearize_threshold_m: float | None = Field(
-        None, gt=0, description="iSAM2 relinearisation threshold of the landmark positions (m); default: "
-        "relinearize_threshold")
+        0.3, gt=0, description="iSAM2 relinearisation threshold of the landmark positions (m; none: "
+        "relinearize_threshold); most of an update's work is re-eliminating relinearised landmarks")
     relinearize_skip: int = Field(1, ge=1, le=100, description="iSAM2 relinearisation check every N updates")
     odometry: OdometryNoiseConfig = Field(OdometryNoiseConfig(), description="wheel-odometry factors: noise per metre, "
                                                                              "robust loss, gaps")
