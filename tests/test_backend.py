@@ -200,6 +200,25 @@ def test_landmark_budgets_count_only_landmarks_seen_recently():
     assert lm.budgets(4, seen_since=10) == (10, 4)
 
 
+def test_factor_bookkeeping_knows_the_ground_factor_and_forgets_a_dropped_one():
+    """Each landmark remembers its factors' smoother indices (removed with it as an outlier) and which one
+    is its native ground factor (re-tied when the mount calibration switches); a dropped factor is
+    forgotten, so a reused slot is never removed twice."""
+    from windowvo.backend.landmarks import LandmarkManager, LandmarkState
+    from windowvo.camera import CameraModel
+
+    cam = CameraModel(width=640, height=480, fx=340.0, fy=340.0, cx=320.0, cy=240.0)
+    lm = LandmarkManager(cam, BackendConfig())
+    lm.landmarks[7] = LandmarkState(key=fac.L(7), last_kf=5, on_ground=True)
+    lm.record_factors([None, (7, 4, False), (7, 5, False), (7, 5, True), (99, 5, False)], [10, 11, 12, 13, 14])
+    st = lm.landmarks[7]
+    assert st.factor_indices == [(4, 11), (5, 12), (5, 13)] and st.ground_factor == (5, 13)
+    lm.drop_factor(7, 5, 13)
+    assert st.factor_indices == [(4, 11), (5, 12)] and st.ground_factor is None
+    lm.record_factors([(7, 5, True)], [13])  # the replacement, in the reused slot
+    assert st.ground_factor == (5, 13) and st.factor_indices.count((5, 13)) == 1
+
+
 def test_landmark_positions_come_from_the_last_estimate_and_only_for_live_landmarks():
     """Positions are read once per estimate; a forgotten landmark, one the estimate lacks, and (after a
     window restart) every old one are left out until the next estimate holds them."""

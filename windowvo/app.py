@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .backend.ground import MOUNT_TILT_MIN_DEG
 from .config import Config, RerunMode, RunMode
 from .errors import WindowVOError
 from .eval.metrics import AccuracyReport
@@ -126,12 +127,6 @@ def _run_job(cfg: Config, progress, worker: BackendWorker | None) -> JobReport:
     return report
 
 
-# Above this tilt of the floor in the base frame (deg), and three standard errors, the summary suspects the
-# camera mount: level rendered runs learn 0.03-0.1 deg, rocking ones up to 0.36 (2.5 deg of rocking, few fits:
-# standard error larger), a mount pitched by 0.5 / 1 deg 0.46 / 0.89.
-MOUNT_TILT_WARN_DEG = 0.3
-
-
 def floor_summary(records: list[FrameRecord]) -> dict:
     """What the run learnt about the floor: how much the base rocked (median over keyframes of
     ``base_rocking_deg``, None when never judged), at how many keyframes floor points were tied to the floor in
@@ -142,7 +137,8 @@ def floor_summary(records: list[FrameRecord]) -> dict:
     return {"base_rocking_deg_median": round(float(np.median(rocking)), 4) if rocking else None,
             "level_frame_keyframes": sum(1 for rec in records if rec.level_frame),
             "floor_tilt_deg": None if not tilts else [round(float(v), 3) for v in tilts[-1][:2]],
-            "floor_tilt_se_deg": None if not tilts else round(float(tilts[-1][2]), 3)}
+            "floor_tilt_se_deg": None if not tilts else round(float(tilts[-1][2]), 3),
+            "floor_normal_learnt_keyframes": sum(1 for rec in records if rec.floor_normal_learnt)}
 
 
 def _progress_bar(cfg: Config, total: int):
@@ -216,14 +212,15 @@ def run_and_report(cfg: Config) -> RunResult:
                      f"{summary['level_frame_keyframes']} keyframes)")
     if summary["floor_tilt_deg"] is not None:
         tx, ty = summary["floor_tilt_deg"]
-        used = "used" if cfg.backend.ground.mount_calibration else "not used"
+        n_used = summary["floor_normal_learnt_keyframes"]
+        used = f"used at {n_used} keyframes" if n_used else "not used"
         se = summary["floor_tilt_se_deg"]
         floor.append(f"tilted {np.hypot(tx, ty):.2f} ± {se:.2f} deg in the base frame ({tx:+.2f} x, {ty:+.2f} y; "
                      f"{used})")
-        if (np.hypot(tx, ty) > max(MOUNT_TILT_WARN_DEG, 3 * se)) and not cfg.backend.ground.mount_calibration:
+        if np.hypot(tx, ty) > max(MOUNT_TILT_MIN_DEG, 3 * se) and not n_used:
             log.warning("the floor is tilted %.2f deg in the base frame: T_base_cam's pitch or roll looks off by about "
                         "that, which biases the ground cue's scale (0.5 deg: about 3%%); correct T_base_cam or set "
-                        "backend.ground.mount_calibration: true", np.hypot(tx, ty))
+                        "backend.ground.mount_calibration: auto or on", np.hypot(tx, ty))
     if floor:
         lines.append("floor: " + "; ".join(floor))
     if report.accuracy is not None:

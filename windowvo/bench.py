@@ -92,8 +92,8 @@ def synthetic_cases(duration: float) -> list[SeqCase]:
         SeqCase("figure_eight_vibration_wheels-3pct", "synth",
                 dict(path=PathKind.FIGURE_EIGHT, duration_s=duration, seed=62, vibration_deg=1.0,
                      wheel=WheelErrorModel(scale_error=-0.03))),
-        # A camera mount pitched 1 deg off its calibration: the ground cue's scale pays for it unless
-        # backend.ground.mount_calibration is on (off by default; the run warns).
+        # A camera mount pitched 1 deg off its calibration: the ground cue's scale pays for it until the
+        # learnt floor tilt is significant (backend.ground.mount_calibration auto) and after, if it is off.
         SeqCase("loop_mount_pitch+1deg", "synth",
                 dict(path=PathKind.LOOP, duration_s=duration, seed=63, calib_pitch_error_deg=1.0)),
     ]

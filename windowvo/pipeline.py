@@ -290,6 +290,7 @@ class Pipeline:
             floor_tilt_x_deg=round(bo.floor_tilt_x_deg, 4) if bo is not None else float("nan"),
             floor_tilt_y_deg=round(bo.floor_tilt_y_deg, 4) if bo is not None else float("nan"),
             floor_tilt_se_deg=round(bo.floor_tilt_se_deg, 4) if bo is not None else float("nan"),
+            floor_normal_learnt=bo.floor_normal_learnt if bo is not None else False,
         )
 
 

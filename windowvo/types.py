@@ -131,6 +131,7 @@ class BackendOutput:
     floor_tilt_x_deg: float = float("nan")
     floor_tilt_y_deg: float = float("nan")
     floor_tilt_se_deg: float = float("nan")  # its standard error
+    floor_normal_learnt: bool = False  # this keyframe's floor points were measured along the learnt normal
 
 
 @dataclass
@@ -186,3 +187,4 @@ class FrameRecord:
     floor_tilt_x_deg: float = float("nan")
     floor_tilt_y_deg: float = float("nan")
     floor_tilt_se_deg: float = float("nan")
+    floor_normal_learnt: bool = False

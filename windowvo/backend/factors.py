@@ -236,12 +236,14 @@ def calibration_prior(k: int, scale: float, yaw_bias: float, scale_sigma: float,
                                    gtsam.noiseModel.Diagonal.Sigmas(np.array([scale_sigma, yaw_bias_sigma])))
 
 
-def calibration_random_walk(cfg: BackendConfig, k_prev: int, k: int, distance: float):
+def calibration_random_walk(cfg: BackendConfig, k_prev: int, k: int, distance: float, release_scale: bool = False):
     """The calibration drifts slowly: a random walk from ``C(k_prev)`` to ``C(k)`` whose sigma grows
-    with the square root of the distance driven between them."""
+    with the square root of the distance driven between them. ``release_scale``: the scale may jump as
+    far as its prior allows (what the window learnt about it came from a floor model found wrong)."""
     wc = cfg.wheel_calibration
     d = np.sqrt(max(distance, 1e-3))
-    sig = np.array([wc.scale_walk_per_sqrt_m * d, wc.yaw_bias_walk_per_sqrt_m * d])
+    s_scale = wc.scale_prior_sigma if release_scale else wc.scale_walk_per_sqrt_m * d
+    sig = np.array([s_scale, wc.yaw_bias_walk_per_sqrt_m * d])
     return gtsam.BetweenFactorPoint2(C(k_prev), C(k), np.zeros(2), gtsam.noiseModel.Diagonal.Sigmas(sig))
 
 

@@ -174,6 +174,13 @@ def level_up(z_axes: np.ndarray, floor_normal: np.ndarray, select_deg: float) ->
     return up / np.linalg.norm(up)
 
 
+# Above this tilt of the floor in the base frame (deg), and three standard errors, the camera mount is
+# suspected (and with ground.mount_calibration auto, corrected): level rendered runs learn 0.03-0.1 deg,
+# rocking ones up to 0.36 (2.5 deg of rocking, few fits: standard error larger), a mount pitched by
+# 0.5 / 1 deg 0.46 / 0.89.
+MOUNT_TILT_MIN_DEG = 0.3
+
+
 class FloorAttitude:
     """The floor's normal in the base frame, learnt from the floor planes fitted at the keyframes.
 
@@ -215,6 +222,11 @@ class FloorAttitude:
         xy = np.degrees(np.arcsin(np.clip(np.asarray(self._xy), -1.0, 1.0)))
         sigma = 1.4826 * np.median(np.abs(xy - np.median(xy, axis=0)), axis=0)
         return float(1.2533 * np.hypot(*sigma) / np.sqrt(len(xy)))
+
+    def significant(self) -> bool:
+        """Whether the learnt tilt says the mount is off: ready, and tilted more than
+        ``MOUNT_TILT_MIN_DEG`` and three standard errors."""
+        return self.ready and float(np.hypot(*self.tilt_deg())) > max(MOUNT_TILT_MIN_DEG, 3.0 * self.standard_error_deg())
 
     def tilt_deg(self) -> tuple[float, float]:
         """The normal's tilt toward the base's +x (forward) and +y (left), in degrees."""

@@ -39,6 +39,7 @@ class LandmarkState:
     factor_indices: list[tuple[int, int]] = field(default_factory=list)  # (keyframe, smoother factor index)
     strikes: int = 0
     on_ground: bool = False
+    ground_factor: tuple[int, int] | None = None  # (keyframe, smoother factor index) of its native ground factor
 
 
 def reprojection_errors(camera: CameraModel, T_world_base: np.ndarray, T_base_cam: np.ndarray,
@@ -182,11 +183,26 @@ class LandmarkManager:
         self.landmarks[tid] = LandmarkState(L(tid), k, on_ground=on_ground)
         return self.obs.pop(tid)
 
-    def record_factors(self, owners: list[tuple[int, int] | None], indices: list[int]) -> None:
-        """Remember the smoother's index of each projection factor, per (track id, keyframe)."""
+    def record_factors(self, owners: list[tuple[int, int, bool] | None], indices: list[int]) -> None:
+        """Remember the smoother's index of each factor a landmark owns, per (track id, keyframe, is its
+        native ground factor)."""
         for fi, owner in zip(indices, owners):
             if owner is not None and owner[0] in self.landmarks:
-                self.landmarks[owner[0]].factor_indices.append((owner[1], int(fi)))
+                lm = self.landmarks[owner[0]]
+                lm.factor_indices.append((owner[1], int(fi)))
+                if owner[2]:
+                    lm.ground_factor = (owner[1], int(fi))
+
+    def drop_factor(self, tid: int, k: int, index: int) -> None:
+        """Forget a factor of a landmark that the caller removes from the smoother (its slot may be reused)."""
+        lm = self.landmarks[tid]
+        lm.factor_indices.remove((k, index))
+        if lm.ground_factor == (k, index):
+            lm.ground_factor = None
+
+    def position(self, tid: int) -> np.ndarray | None:
+        """A landmark's world position in the last estimate (None if it has none)."""
+        return self._where.get(tid)
 
     def forget(self, tids: list[int]) -> None:
         for tid in tids:

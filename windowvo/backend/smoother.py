@@ -43,7 +43,7 @@ import gtsam
 import numpy as np
 
 from ..camera import CameraModel
-from ..config import BackendConfig
+from ..config import BackendConfig, MountCalibration
 from ..errors import WindowVOError
 from ..geometry import inv_T, make_T, rot_z
 from ..types import BackendOutput, BackendStatus, FrontendOutput, GateOutcome, OdometryStep, ScaleSource
@@ -117,6 +117,11 @@ class SlidingWindowBackend:
         # The floor's attitude in the base frame is always learnt (the summary reports it: a tilted mount
         # shows there); with ground.mount_calibration it is also used.
         self.floor_attitude = FloorAttitude(g.mount_min_fits, g.mount_fits)
+        # ground.mount_calibration auto: the learnt normal is used from the first keyframe where its tilt is
+        # significant on (sticky), and the wheel calibration's scale is released once at that keyframe.
+        self.mount_normal_used = g.mount_calibration is MountCalibration.ON
+        self._release_scale = self._retie_floor = False
+        self.floor_normal_learnt = False  # the last update measured its floor points along the learnt normal
         # Metric scale: from the wheels, or (monocular) once the ground plane has fixed the first baseline.
         self.metric = use_odometry
         self.n_ground_factors = 0
@@ -303,7 +308,10 @@ class SlidingWindowBackend:
         each update (one per keyframe made the back end ~50% slower). A new state ``C(k)`` joins with
         a prior (the first one) or a random walk from the previous one, so the chain never breaks; a
         state in use has its timestamp refreshed, so it leaves with the last pose whose step it holds."""
-        if k != self.calib_start and self.calib_key >= 0 and not self._calibration_block_starts(k):
+        release = self._release_scale
+        self._release_scale = False
+        if (k != self.calib_start and self.calib_key >= 0 and not self._calibration_block_starts(k)
+                and not release):
             stamps[C(self.calib_key)] = float(k)
             return C(self.calib_key)
         values.insert(C(k), np.array([self.calib.scale, self.calib.yaw_bias_per_m]))
@@ -313,7 +321,8 @@ class SlidingWindowBackend:
             graph.add(fac.calibration_prior(k, self.calib.scale, self.calib.yaw_bias_per_m,
                                             wc.scale_prior_sigma, wc.yaw_bias_prior_sigma))
         else:
-            graph.add(fac.calibration_random_walk(self.cfg, self.calib_key, k, self.calib_distance_m))
+            graph.add(fac.calibration_random_walk(self.cfg, self.calib_key, k, self.calib_distance_m,
+                                                  release_scale=release))
         self.calib_key, self.calib_distance_m = k, 0.0
         return C(k)
 
@@ -323,10 +332,11 @@ class SlidingWindowBackend:
         if self.calibration_wanted and not self.calibrate and self.n_ground_keyframes > 0:
             self.calibrate, self.calib_start = True, k
             log.info("keyframe %d: the floor is in view; wheel scale and yaw bias are now estimated online", k)
+        self._judge_mount()
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         stamps: dict[int, float] = {}
-        self.level_frame = False
+        self.level_frame = self.floor_normal_learnt = False
         values.insert(X(k), gtsam.Pose3(T_guess))
         stamps[X(k)] = float(k)
         self._motion_factors(graph, values, stamps, k, odom, T_guess)
@@ -337,8 +347,11 @@ class SlidingWindowBackend:
         # Outlier landmarks flagged after the previous update: remove their factors; the key stays
         # alive with its birth prior until it is marginalised.
         remove = self.lm.take_removals()
-        owners: list[tuple[int, int] | None] = [None] * graph.size()  # (track id, keyframe) per factor
+        # Per factor: (track id, keyframe, is a native ground factor), or None.
+        owners: list[tuple[int, int, bool] | None] = [None] * graph.size()
         w0 = self.window_start(k)
+        if self._retie_floor:
+            remove = remove + self._retie_window_floor(graph, owners, w0)
         n_vis = n_ground = 0
         new_lms: list[int] = []
         if use_vision:
@@ -349,7 +362,7 @@ class SlidingWindowBackend:
             for tid, uv, sc in seen:
                 key = L(tid)
                 graph.add(fac.projection_factor(uv, X(k), key, self._pixel_noise(sc), self.K, self.body_P_sensor))
-                owners.append((tid, k))
+                owners.append((tid, k, False))
                 stamps[key] = float(k)
                 n_vis += 1
             budgets = self._budgets()  # no landmark is born before both uses below
@@ -370,7 +383,7 @@ class SlidingWindowBackend:
                     if kk >= w0:
                         graph.add(fac.projection_factor(uv_k, X(kk), key, self._pixel_noise(sc), self.K,
                                                         self.body_P_sensor))
-                        owners.append((tid, kk))
+                        owners.append((tid, kk, False))
                         n_vis += 1
                 if floor:
                     if up_world is None:
@@ -382,8 +395,9 @@ class SlidingWindowBackend:
                                                           cfg))
                         self.n_level_ground_factors += 1
                         self.level_frame = True
-                    owners.append((tid, k))
+                    owners.append((tid, k, up_world is None))
                     n_ground += 1
+                    self.floor_normal_learnt = n_base is not None
                 new_lms.append(tid)
         ts_map = gtsam.FixedLagSmootherKeyTimestampMap()
         for key, t in stamps.items():
@@ -497,7 +511,7 @@ class SlidingWindowBackend:
         fa = self.floor_attitude
         if fit is not None:
             fa.add(fit.normal)
-            if self.cfg.ground.mount_calibration and not fa.ready:
+            if self.cfg.ground.mount_calibration is MountCalibration.ON and not fa.ready:
                 # Still learning the floor's attitude on the mount: floor points tied to a floor the mount
                 # may be tilted against would set a wrong scale (and the wheel calibration with it), which
                 # the calibration's slow random walk then carries for the rest of the run.
@@ -512,10 +526,51 @@ class SlidingWindowBackend:
         return float(n_base @ self.T_base_cam[:3, 3]) - self.camera_height_m
 
     def floor_normal_base(self) -> np.ndarray | None:
-        """The floor's normal in the base frame learnt so far (None: the base z axis)."""
-        if not self.cfg.ground.mount_calibration or not self.floor_attitude.ready:
+        """The floor's normal in the base frame learnt so far, when it is used (None: the base z axis)."""
+        if not self.mount_normal_used or not self.floor_attitude.ready:
             return None
         return self.floor_attitude.normal
+
+    def _retie_window_floor(self, graph, owners: list, w0: int) -> list[int]:
+        """Tie the window's floor landmarks to the floor along the learnt normal instead of the base z axis
+        (at the switch of ``_judge_mount``): their ground factors are replaced, so the keyframes still in
+        the window lose the scale the wrong floor gave them. Returns the factor indices to remove."""
+        self._retie_floor = False
+        n_base = self.floor_normal_base()
+        offset = self.floor_offset(n_base)
+        removed = []
+        for tid, lm in self.lm.landmarks.items():
+            if lm.ground_factor is None or lm.last_kf < w0:
+                continue
+            kk, fi = lm.ground_factor
+            p_world = self.lm.position(tid)
+            if kk < w0 or p_world is None:
+                continue
+            T = self.kf_pose[kk]
+            p_base = (p_world - T[:3, 3]) @ T[:3, :3]
+            graph.add(fac.ground_factor(X(kk), lm.key, p_base, offset, self.ground_sigma_m, self.cfg, n_base))
+            owners.append((tid, kk, True))
+            self.lm.drop_factor(tid, kk, fi)
+            removed.append(fi)
+        log.info("keyframe %d: %d floor landmarks of the window re-tied along the learnt normal", self.k, len(removed))
+        return removed
+
+    def _judge_mount(self) -> None:
+        """``ground.mount_calibration`` auto: switch to the learnt floor normal once its tilt is significant.
+
+        Until then the floor points were tied to the base's xy plane, which a tilted mount makes the wrong
+        floor: the scale they gave went into the wheel calibration, which its slow random walk would carry
+        for tens of metres. So the calibration's scale is released once (its next state joins with a
+        random walk as wide as its prior). Measured on loops whose camera.yaml is 0.5 / 1 / -1 deg off
+        (README, mount study)."""
+        if (self.cfg.ground.mount_calibration is not MountCalibration.AUTO or self.mount_normal_used
+                or not self.floor_attitude.significant()):
+            return
+        self.mount_normal_used = self._release_scale = self._retie_floor = True
+        tx, ty = self.floor_attitude.tilt_deg()
+        log.warning("keyframe %d: the floor is tilted %.2f deg in the base frame (T_base_cam's pitch or roll looks "
+                    "off by that): floor heights are measured along the learnt normal from here on, and the wheel "
+                    "calibration's scale is released", self.k, float(np.hypot(tx, ty)))
 
     def _level_up(self, T_guess: np.ndarray, fit: PlaneFit | None) -> np.ndarray | None:
         """The floor's normal (world) to measure this keyframe's floor points along when the base rocks,
@@ -651,6 +706,7 @@ class SlidingWindowBackend:
             floor_tilt_x_deg=tilt[0],
             floor_tilt_y_deg=tilt[1],
             floor_tilt_se_deg=self.floor_attitude.standard_error_deg() if self.floor_attitude.ready else float("nan"),
+            floor_normal_learnt=self.floor_normal_learnt,
             wheel_scale=self.calib.scale if self.calibrate else float("nan"),
             wheel_yaw_bias_per_m=self.calib.yaw_bias_per_m if self.calibrate else float("nan"),
         )
