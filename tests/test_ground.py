@@ -7,10 +7,17 @@ import pytest
 
 from windowvo.backend import factors as fac
 from windowvo.backend.factors import C, L, X
-from windowvo.backend.ground import FloorAttitude, attitude_jitter_deg, fit_floor_plane, floor_mask, level_up
+from windowvo.backend.ground import (
+    FloorAttitude,
+    attitude_jitter_deg,
+    fit_floor_plane,
+    floor_mask,
+    level_up,
+    levelled_mount,
+)
 from windowvo.backend.smoother import SlidingWindowBackend, WheelCalibration
 from windowvo.config import BackendConfig, GroundConfig
-from windowvo.geometry import make_T, rpy_to_R
+from windowvo.geometry import make_T, rot_x, rotation_angle, rpy_to_R
 from windowvo.synth.features import simulate_features
 from windowvo.synth.generate import SynthSpec, WheelErrorModel
 from windowvo.synth.paths import PathKind
@@ -328,3 +335,19 @@ def test_calibration_states_survive_odometry_gaps_and_marginalisation(block):
     # vision sees rotation, so the yaw bias is observable even without a metric floor cue
     assert cal.yaw_bias_per_m == pytest.approx(0.01, abs=0.003)
     assert 0 < cal.yaw_bias_sigma < 0.01
+
+
+def test_levelled_mount_undoes_a_pitched_calibration():
+    """A calibration that claims the camera pitched 1 deg further down than it is: the floor's normal seen
+    through it, in the claimed base frame, gives back the true T_base_cam (a pitch error turns the camera
+    about its horizontal x axis, the smallest rotation that levels the floor)."""
+    R_fwd = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera z forward, x right
+    T_true = make_T(R_fwd @ rot_x(-np.radians(12.0)), [0.25, 0.0, 0.45])
+    T_claimed = make_T(R_fwd @ rot_x(-np.radians(13.0)), [0.25, 0.0, 0.45])
+    n_seen = T_claimed[:3, :3] @ T_true[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # the floor's z, as the claim sees it
+    assert np.degrees(np.arccos(n_seen[2])) == pytest.approx(1.0, abs=1e-9)
+    T_fixed = levelled_mount(T_claimed, n_seen)
+    assert rotation_angle(T_fixed[:3, :3].T @ T_true[:3, :3]) < 1e-9
+    assert np.allclose(T_fixed[:3, 3], T_true[:3, 3])
+    assert np.allclose(levelled_mount(T_true, [0.0, 0.0, 1.0]), T_true)  # a level floor changes nothing
+

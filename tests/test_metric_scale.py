@@ -16,7 +16,8 @@ from conftest import SHARED_DATA, make_config
 from windowvo.app import floor_summary, run_job
 from windowvo.backend.ground import MOUNT_TILT_MIN_DEG
 from windowvo.config import config_from_dict
-from windowvo.synth.generate import WheelErrorModel
+from windowvo.geometry import rotation_angle
+from windowvo.synth.generate import SynthSpec, WheelErrorModel, camera_for
 from windowvo.synth.paths import PathKind
 
 pytestmark = pytest.mark.slow
@@ -106,6 +107,14 @@ def test_mount_pitched_against_its_calibration(seq_factory, tmp_path):
     assert tilt is not None and np.hypot(*tilt) > 0.6, tilt
     assert np.hypot(*tilt) > max(MOUNT_TILT_MIN_DEG, 3 * floor["floor_tilt_se_deg"]), floor  # the run warns
     assert floor["floor_normal_learnt_keyframes"] == 0, floor
+    # the summary's levelled T_base_cam is much nearer the true mount than the claimed one (1 deg off)
+    T_claimed = plain.sequence.camera.T_base_cam
+    T_true = camera_for(SynthSpec(path=PathKind.LOOP)).T_base_cam
+    T_levelled = np.reshape(floor_summary(plain.result.records, T_claimed)["T_base_cam_levelled"], (4, 4))
+    err_claimed = np.degrees(rotation_angle(T_claimed[:3, :3].T @ T_true[:3, :3]))
+    err_levelled = np.degrees(rotation_angle(T_levelled[:3, :3].T @ T_true[:3, :3]))
+    print(f"mount rotation error: claimed {err_claimed:.3f} deg, levelled by the learnt tilt {err_levelled:.3f} deg")
+    assert err_claimed == pytest.approx(1.0, abs=1e-6) and err_levelled < 0.25, (err_claimed, err_levelled)
     # auto: switched, and the cue no longer makes the run worse than without it
     assert floor_summary(auto.result.records)["floor_normal_learnt_keyframes"] > 0
     assert a.ate_se3_rmse_m <= no_cue.ate_se3_rmse_m, (a, no_cue)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .backend.ground import MOUNT_TILT_MIN_DEG
+from .backend.ground import MOUNT_TILT_MIN_DEG, levelled_mount
 from .config import Config, RerunMode, RunMode
 from .errors import WindowVOError
 from .eval.metrics import AccuracyReport
@@ -127,7 +127,7 @@ def _run_job(cfg: Config, progress, worker: BackendWorker | None) -> JobReport:
     return report
 
 
-def floor_summary(records: list[FrameRecord]) -> dict:
+def floor_summary(records: list[FrameRecord], T_base_cam: np.ndarray | None = None) -> dict:
     """What the run learnt about the floor: how much the base rocked (median over keyframes of
     ``base_rocking_deg``, None when never judged), at how many keyframes floor points were tied to the floor in
     a level frame because of it, and the floor's tilt in the base frame at the end (None: too few floor fits)."""
@@ -138,7 +138,15 @@ def floor_summary(records: list[FrameRecord]) -> dict:
             "level_frame_keyframes": sum(1 for rec in records if rec.level_frame),
             "floor_tilt_deg": None if not tilts else [round(float(v), 3) for v in tilts[-1][:2]],
             "floor_tilt_se_deg": None if not tilts else round(float(tilts[-1][2]), 3),
-            "floor_normal_learnt_keyframes": sum(1 for rec in records if rec.floor_normal_learnt)}
+            "floor_normal_learnt_keyframes": sum(1 for rec in records if rec.floor_normal_learnt),
+            "T_base_cam_levelled": None if not tilts or T_base_cam is None else [
+                round(float(v), 6) for v in levelled_mount(T_base_cam, _tilt_normal(*tilts[-1][:2])).ravel()]}
+
+
+def _tilt_normal(tilt_x_deg: float, tilt_y_deg: float) -> np.ndarray:
+    """The floor normal whose tilt toward the base's +x and +y is given (``FloorAttitude.tilt_deg``)."""
+    n = np.array([np.tan(np.radians(tilt_x_deg)), np.tan(np.radians(tilt_y_deg)), 1.0])
+    return n / np.linalg.norm(n)
 
 
 def _progress_bar(cfg: Config, total: int):
@@ -187,7 +195,7 @@ def run_and_report(cfg: Config) -> RunResult:
             "yaw_bias_sigma": round(r.wheel_calibration.yaw_bias_sigma, 6)},
         "odometry_synthetic": bool(report.sequence.odometry is not None and report.sequence.odometry.synthetic),
         "interrupted": r.interrupted,
-        **floor_summary(r.records),
+        **floor_summary(r.records, report.sequence.camera.T_base_cam),
         "accuracy": report.accuracy.as_dict() if report.accuracy is not None else None,
         "accuracy_online": report.online_accuracy.as_dict() if report.online_accuracy is not None else None,
         "wheel_only_accuracy": report.wheel_accuracy.as_dict() if report.wheel_accuracy is not None else None,
@@ -219,8 +227,10 @@ def run_and_report(cfg: Config) -> RunResult:
                      f"{used})")
         if np.hypot(tx, ty) > max(MOUNT_TILT_MIN_DEG, 3 * se) and not n_used:
             log.warning("the floor is tilted %.2f deg in the base frame: T_base_cam's pitch or roll looks off by about "
-                        "that, which biases the ground cue's scale (0.5 deg: about 3%%); correct T_base_cam or set "
-                        "backend.ground.mount_calibration: auto or on", np.hypot(tx, ty))
+                        "that, which biases the ground cue's scale (0.5 deg: about 3%%); correct T_base_cam (summary.json: "
+                        "T_base_cam_levelled) or set backend.ground.mount_calibration: auto or on", np.hypot(tx, ty))
+        elif np.hypot(tx, ty) > max(MOUNT_TILT_MIN_DEG, 3 * se):
+            floor.append("T_base_cam levelled by it in summary.json (T_base_cam_levelled)")
     if floor:
         lines.append("floor: " + "; ".join(floor))
     if report.accuracy is not None:

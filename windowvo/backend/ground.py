@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import GroundConfig
+from ..geometry import so3_exp
 
 RANSAC_ITERATIONS = 60
 # The ground factor measures a floor point's elevation seen from the base origin, which is undefined
@@ -232,3 +233,21 @@ class FloorAttitude:
         """The normal's tilt toward the base's +x (forward) and +y (left), in degrees."""
         n = self.normal
         return float(np.degrees(np.arctan2(n[0], n[2]))), float(np.degrees(np.arctan2(n[1], n[2])))
+
+
+def levelled_mount(T_base_cam: np.ndarray, normal_base: np.ndarray) -> np.ndarray:
+    """``T_base_cam`` with its rotation corrected so that a floor whose normal the camera saw as
+    ``normal_base`` (in the base frame ``T_base_cam`` defines) is the base's xy plane.
+
+    A mount pitched or rolled against its calibration rotates the camera, not its position: the true
+    rotation is the smallest rotation taking ``normal_base`` to z, applied on the base side; the
+    translation stays. What a user puts into ``camera.yaml`` once a run learnt the floor's tilt."""
+    n = np.asarray(normal_base, float)
+    n = n / np.linalg.norm(n)
+    axis = np.cross(n, [0.0, 0.0, 1.0])
+    angle = float(np.arctan2(np.linalg.norm(axis), n[2]))
+    R_fix = so3_exp(axis / np.linalg.norm(axis) * angle) if angle > 1e-12 else np.eye(3)
+    T = np.array(T_base_cam, float, copy=True)
+    T[:3, :3] = R_fix @ T[:3, :3]
+    return T
+
