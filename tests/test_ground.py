@@ -14,6 +14,7 @@ from windowvo.backend.ground import (
     floor_mask,
     level_up,
     levelled_mount,
+    tilt_significant,
 )
 from windowvo.backend.smoother import SlidingWindowBackend, WheelCalibration
 from windowvo.config import BackendConfig, GroundConfig
@@ -204,9 +205,16 @@ def test_floor_attitude_is_the_median_of_the_fits():
     # standard error of the median: 1.25 * hypot(0.3, 0.3) / sqrt(60) = 0.07 deg, the ramp's fits aside
     assert 0.04 < fa.standard_error_deg() < 0.11
     assert FloorAttitude(1, 10).standard_error_deg() == float("inf")
+    assert fa.significant()  # 1 deg, 0.07 deg standard error: the mount is off
     for _ in range(60):  # the mount was corrected: the old fits leave
         fa.add(np.array([0.0, 0.0, 1.0]))
-    assert np.allclose(fa.normal, [0, 0, 1])
+    assert np.allclose(fa.normal, [0, 0, 1]) and not fa.significant()
+    # not significant: below 0.3 deg, or within three standard errors, or before min_fits
+    assert not tilt_significant(0.25, 0.01) and not tilt_significant(0.6, 0.25) and tilt_significant(0.6, 0.15)
+    few = FloorAttitude(min_fits=10, max_fits=60)
+    for _ in range(9):
+        few.add(rpy_to_R(0.0, np.radians(2.0), 0.0)[:, 2])
+    assert not few.significant()
 
 
 def _tilted_z(roll_deg: np.ndarray, pitch_deg: np.ndarray) -> np.ndarray:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .backend.ground import MOUNT_TILT_MIN_DEG, levelled_mount
+from .backend.ground import levelled_mount, tilt_significant
 from .config import Config, RerunMode, RunMode
 from .errors import WindowVOError
 from .eval.metrics import AccuracyReport
@@ -225,11 +225,12 @@ def run_and_report(cfg: Config) -> RunResult:
         se = summary["floor_tilt_se_deg"]
         floor.append(f"tilted {np.hypot(tx, ty):.2f} ± {se:.2f} deg in the base frame ({tx:+.2f} x, {ty:+.2f} y; "
                      f"{used})")
-        if np.hypot(tx, ty) > max(MOUNT_TILT_MIN_DEG, 3 * se) and not n_used:
+        significant = tilt_significant(float(np.hypot(tx, ty)), se)
+        if significant and not n_used:
             log.warning("the floor is tilted %.2f deg in the base frame: T_base_cam's pitch or roll looks off by about "
                         "that, which biases the ground cue's scale (0.5 deg: about 3%%); correct T_base_cam (summary.json: "
                         "T_base_cam_levelled) or set backend.ground.mount_calibration: auto or on", np.hypot(tx, ty))
-        elif np.hypot(tx, ty) > max(MOUNT_TILT_MIN_DEG, 3 * se):
+        elif significant:
             floor.append("T_base_cam levelled by it in summary.json (T_base_cam_levelled)")
     if floor:
         lines.append("floor: " + "; ".join(floor))

@@ -182,6 +182,11 @@ def level_up(z_axes: np.ndarray, floor_normal: np.ndarray, select_deg: float) ->
 MOUNT_TILT_MIN_DEG = 0.3
 
 
+def tilt_significant(tilt_deg: float, standard_error_deg: float) -> bool:
+    """Whether a learnt floor tilt says the camera mount is off its calibration."""
+    return tilt_deg > max(MOUNT_TILT_MIN_DEG, 3.0 * standard_error_deg)
+
+
 class FloorAttitude:
     """The floor's normal in the base frame, learnt from the floor planes fitted at the keyframes.
 
@@ -225,9 +230,8 @@ class FloorAttitude:
         return float(1.2533 * np.hypot(*sigma) / np.sqrt(len(xy)))
 
     def significant(self) -> bool:
-        """Whether the learnt tilt says the mount is off: ready, and tilted more than
-        ``MOUNT_TILT_MIN_DEG`` and three standard errors."""
-        return self.ready and float(np.hypot(*self.tilt_deg())) > max(MOUNT_TILT_MIN_DEG, 3.0 * self.standard_error_deg())
+        """Whether the learnt tilt says the mount is off (ready, and ``tilt_significant``)."""
+        return self.ready and tilt_significant(float(np.hypot(*self.tilt_deg())), self.standard_error_deg())
 
     def tilt_deg(self) -> tuple[float, float]:
         """The normal's tilt toward the base's +x (forward) and +y (left), in degrees."""
