@@ -13,21 +13,26 @@ from windowvo.parallel import BackendWorker
 from windowvo.synth.paths import PathKind
 
 
-@pytest.mark.parametrize("case", ["level", "rocking_tilted_mount"])
+@pytest.mark.parametrize("case", ["level", "rocking_tilted_mount", "tilted_mount_auto"])
 def test_pipelined_equals_sequential(short_loop, seq_factory, tmp_path, case):
     """Also on a rocking base whose camera.yaml is 0.5 deg off, with the mount calibration on: the level
-    frame's Python factor and the learnt floor normal are built in the worker process."""
+    frame's Python factor and the learnt floor normal are built in the worker process; and on a loop whose
+    camera.yaml is 1 deg off with the default (auto): the switch re-ties floor landmarks in the worker."""
     seq, backend = short_loop, {}
     if case == "rocking_tilted_mount":
         seq = seq_factory("short_rocking_tilted", path=PathKind.FIGURE_EIGHT, duration_s=12.0, seed=8,
                           vibration_deg=1.0, calib_pitch_error_deg=0.5)
         backend = {"ground": {"mount_calibration": True}}
+    if case == "tilted_mount_auto":
+        seq = seq_factory("short_tilted", path=PathKind.LOOP, duration_s=12.0, seed=9, calib_pitch_error_deg=1.0)
     reps = {}
     for mode in ("sequential", "pipelined"):
         reps[mode] = run_job(make_config(seq, tmp_path / mode, run_mode=mode, backend=backend))
+    floor = floor_summary(reps["pipelined"].result.records)
     if case == "rocking_tilted_mount":
-        floor = floor_summary(reps["pipelined"].result.records)
         assert floor["level_frame_keyframes"] > 0 and floor["floor_tilt_deg"] is not None, floor
+    if case == "tilted_mount_auto":
+        assert floor["floor_normal_learnt_keyframes"] > 0, floor
     for name in ("trajectory.txt", "trajectory_online.txt"):
         a = (tmp_path / "sequential" / name).read_text()
         b = (tmp_path / "pipelined" / name).read_text()
