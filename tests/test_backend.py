@@ -217,6 +217,11 @@ def test_factor_bookkeeping_knows_the_ground_factor_and_forgets_a_dropped_one():
     assert st.factor_indices == [(4, 11), (5, 12)] and st.ground_factor is None
     lm.record_factors([(7, 5, True)], [13])  # the replacement, in the reused slot
     assert st.ground_factor == (5, 13) and st.factor_indices.count((5, 13)) == 1
+    # floor landmarks have keys of their own symbol (their own relinearisation threshold)
+    for tid, floor in ((8, True), (9, False)):
+        lm.obs[tid] = [(3, np.zeros(2), 1.0), (4, np.ones(2), 1.0)]
+        assert len(lm.promote(tid, 4, floor)) == 2
+    assert lm.landmarks[8].key == fac.G(8) and lm.landmarks[9].key == fac.L(9)
 
 
 def test_landmark_positions_come_from_the_last_estimate_and_only_for_live_landmarks():
@@ -254,8 +259,8 @@ def test_landmark_positions_come_from_the_last_estimate_and_only_for_live_landma
 @pytest.mark.parametrize("lm_threshold", [None, 0.3])
 def test_relinearisation_thresholds_cover_every_state_kind(lm_threshold):
     """iSAM2 needs a threshold of the right size for every symbol in the graph (else it raises at the
-    first relinearisation check): poses, landmarks and calibration states, all moved far enough to be
-    relinearised."""
+    first relinearisation check): poses, landmarks, floor landmarks and calibration states, all moved far
+    enough to be relinearised."""
     cfg = BackendConfig(landmark_relinearize_threshold_m=lm_threshold)
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(fac.relinearize_thresholds(cfg))
@@ -265,13 +270,16 @@ def test_relinearisation_thresholds_cover_every_state_kind(lm_threshold):
     values = gtsam.Values()
     values.insert(X(0), gtsam.Pose3(gtsam.Rot3(), np.array([1.0, 1.0, 1.0])))
     values.insert(fac.L(1), gtsam.Point3(3.0, 2.0, 2.5))
+    values.insert(fac.G(2), gtsam.Point3(2.0, -1.0, 0.5))
     values.insert(fac.C(0), np.array([2.0, 1.0]))
     graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.1)))
     graph.add(gtsam.PriorFactorPoint3(fac.L(1), gtsam.Point3(1.0, 0.0, 0.5), gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
+    graph.add(gtsam.PriorFactorPoint3(fac.G(2), gtsam.Point3(1.5, 0.0, 0.0), gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
     graph.add(fac.calibration_prior(0, 1.0, 0.0, 0.03, 0.02))
     isam.update(graph, values)
     for _ in range(3):
         isam.update()  # relinearisation checks over every variable
     est = isam.calculateEstimate()
     assert np.allclose(est.atPoint3(fac.L(1)), [1.0, 0.0, 0.5], atol=1e-6)
+    assert np.allclose(est.atPoint3(fac.G(2)), [1.5, 0.0, 0.0], atol=1e-6)
     assert np.allclose(est.atPoint2(fac.C(0)), [1.0, 0.0], atol=1e-6)

@@ -242,9 +242,9 @@ class BackendConfig(_Section):
     relinearize_threshold: float = Field(0.05, gt=0, description="iSAM2 relinearisation threshold of the keyframe "
                                          "poses (rad and m) and the wheel calibration")
     landmark_relinearize_threshold_m: float | None = Field(
-        None, gt=0, description="iSAM2 relinearisation threshold of the landmark positions (m; none: "
-        "relinearize_threshold); 0.3 cut the back end's median by 10-27% but made the regression tests' ramp "
-        "1.4x worse (README)")
+        0.3, gt=0, description="iSAM2 relinearisation threshold of the landmarks off the floor (m; floor landmarks "
+        "keep relinearize_threshold; none: relinearize_threshold for all); most of an update's work is "
+        "re-eliminating relinearised landmarks")
     relinearize_skip: int = Field(1, ge=1, le=100, description="iSAM2 relinearisation check every N updates")
     odometry: OdometryNoiseConfig = Field(OdometryNoiseConfig(), description="wheel-odometry factors: noise per metre, "
                                                                              "robust loss, gaps")

@@ -29,7 +29,7 @@ FREE_SIGMA = 1e3
 # Yaw uncertainty added per radian of turn in one odometry step (wheel geometry errors grow with turning).
 YAW_SIGMA_PER_RAD = 0.02
 # Symbols of the smoother's states (each needs a relinearisation threshold, see relinearize_thresholds).
-POSE_SYMBOL, LANDMARK_SYMBOL, CALIBRATION_SYMBOL = "x", "l", "c"
+POSE_SYMBOL, LANDMARK_SYMBOL, FLOOR_LANDMARK_SYMBOL, CALIBRATION_SYMBOL = "x", "l", "g", "c"
 
 
 def X(k: int) -> int:
@@ -40,6 +40,11 @@ def X(k: int) -> int:
 def L(track_id: int) -> int:
     """Key of ``p_world_landmark`` of track ``track_id``."""
     return gtsam.symbol(LANDMARK_SYMBOL, track_id)
+
+
+def G(track_id: int) -> int:
+    """Key of ``p_world_landmark`` of track ``track_id`` when it is a floor landmark."""
+    return gtsam.symbol(FLOOR_LANDMARK_SYMBOL, track_id)
 
 
 def C(k: int) -> int:
@@ -80,14 +85,16 @@ def threshold(explicit: float | None, dim: int, cfg: BackendConfig) -> float:
 def relinearize_thresholds(cfg: BackendConfig) -> float | gtsam.ISAM2ThresholdMap:
     """iSAM2's relinearisation threshold, one for all states or one per kind of state.
 
-    Landmarks may have their own threshold in metres: most of an update's work is re-eliminating
-    the landmarks a new keyframe sees, and a landmark metres away that moved a few centimetres
-    changes its projections by a fraction of a pixel. A map must name every symbol in the graph."""
+    Landmarks off the floor may have their own threshold in metres: most of an update's work is
+    re-eliminating the landmarks a new keyframe sees, and those are mostly metres away, where a few
+    centimetres change a projection by a fraction of a pixel. Floor landmarks (near, and their heights
+    carry the scale) keep the poses' threshold: relaxing theirs too made a ramp 1.4x worse. A map must
+    name every symbol in the graph."""
     t = cfg.relinearize_threshold
     if cfg.landmark_relinearize_threshold_m is None:
         return t
     m = gtsam.ISAM2ThresholdMap()
-    for sym, dim, value in ((POSE_SYMBOL, 6, t), (CALIBRATION_SYMBOL, 2, t),
+    for sym, dim, value in ((POSE_SYMBOL, 6, t), (CALIBRATION_SYMBOL, 2, t), (FLOOR_LANDMARK_SYMBOL, 3, t),
                             (LANDMARK_SYMBOL, 3, cfg.landmark_relinearize_threshold_m)):
         m.insert((sym, np.full(dim, value)))
     return m

@@ -19,7 +19,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import BackendConfig
 from ..geometry import inv_T
-from .factors import L
+from .factors import G, L
 
 # Minimum correspondences for PnP on the window's landmarks, and inliers to accept its pose.
 PNP_MIN_POINTS = 12
@@ -180,7 +180,7 @@ class LandmarkManager:
 
     def promote(self, tid: int, k: int, on_ground: bool) -> list[tuple[int, np.ndarray, float]]:
         """Turn a triangulated track into a landmark; returns its stored observations."""
-        self.landmarks[tid] = LandmarkState(L(tid), k, on_ground=on_ground)
+        self.landmarks[tid] = LandmarkState(G(tid) if on_ground else L(tid), k, on_ground=on_ground)
         return self.obs.pop(tid)
 
     def record_factors(self, owners: list[tuple[int, int, bool] | None], indices: list[int]) -> None:

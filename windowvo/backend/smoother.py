@@ -360,7 +360,7 @@ class SlidingWindowBackend:
             cams = LandmarkManager.camera_poses(poses, self.T_base_cam)
             seen, candidates = self.lm.observe(fo.track_ids, fo.pixels_undistorted, k, allow_new, fo.pixel_sigma_scale)
             for tid, uv, sc in seen:
-                key = L(tid)
+                key = self.lm.landmarks[tid].key
                 graph.add(fac.projection_factor(uv, X(k), key, self._pixel_noise(sc), self.K, self.body_P_sensor))
                 owners.append((tid, k, False))
                 stamps[key] = float(k)
@@ -374,7 +374,7 @@ class SlidingWindowBackend:
             floor_offset = self.floor_offset(n_base)
             cam_center = (T_guess @ self.T_base_cam)[:3, 3]
             for (tid, p), floor in zip(born, on_floor):
-                key = L(tid)
+                key = fac.G(tid) if floor else L(tid)
                 values.insert(key, gtsam.Point3(p))
                 stamps[key] = float(k)
                 graph.add(fac.landmark_birth_prior(key, p, float(np.linalg.norm(p - cam_center))))
