@@ -45,6 +45,8 @@ def test_overrides_are_typed(tmp_path):
         ("sequence: s\noutput: o\ndataset: hdf5\n", "'dataset'"),
         ("- a\n- b\n", "mapping"),
         ("sequence: [unclosed\n", "not valid YAML"),
+        ("sequence: s\noutput: o\nbackend:\n  ground:\n    mount_calibration: maybe\n",
+         "'backend.ground.mount_calibration'"),
     ],
 )
 def test_bad_config_gives_one_clear_line(tmp_path, text, needle):
@@ -53,6 +55,12 @@ def test_bad_config_gives_one_clear_line(tmp_path, text, needle):
     msg = str(exc.value)
     assert needle in msg
     assert "\n" not in msg
+
+
+@pytest.mark.parametrize("value,mode", [("true", "on"), ("false", "off"), ("auto", "auto"), ("off", "off")])
+def test_mount_calibration_accepts_the_old_booleans(tmp_path, value, mode):
+    cfg = load_config(write(tmp_path, f"sequence: s\noutput: o\nbackend:\n  ground:\n    mount_calibration: {value}\n"))
+    assert cfg.backend.ground.mount_calibration.value == mode
 
 
 def test_bad_override(tmp_path):
