@@ -76,3 +76,53 @@ def test_summary_says_how_it_ran(short_loop, tmp_path):
     summary = json.loads((tmp_path / "p" / "summary.json").read_text())
     assert summary["run_mode"] == "pipelined"
     assert summary["frames"] == 60
+
+
+_ORPHAN_SCRIPT = """
+import os, sys, time
+from windowvo.config import BackendConfig
+from windowvo.parallel import BackendWorker
+from windowvo.synth.features import simulate_features
+from windowvo.synth.generate import SynthSpec
+from windowvo.synth.paths import PathKind
+
+if __name__ == "__main__":
+    fs = simulate_features(SynthSpec(path=PathKind.LOOP, duration_s=15.0, speed=0.8, seed=3))
+    w = BackendWorker()
+    w.start(fs.world.camera, BackendConfig(), use_odometry=False)
+    for fo in fs.keyframes[:40]:
+        w.submit(fo, None)  # results never read: the worker's pipe to this process fills up
+    print(w._proc.pid, flush=True)
+    time.sleep(60)
+"""
+
+
+def test_the_worker_ends_when_the_main_process_is_killed(tmp_path):
+    """SIGKILL of the main process while the worker holds unread results (more than a pipe's buffer):
+    the worker must still end (an orphan would keep the robot's CPU and the parent's output pipes)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "orphan.py"
+    script.write_text(_ORPHAN_SCRIPT)
+    p = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    worker_pid = int(p.stdout.readline())
+    time.sleep(8.0)  # the worker processes the 40 keyframes, its results pile up unread
+    p.send_signal(signal.SIGKILL)
+    p.wait(timeout=10)
+    deadline = time.time() + 15.0
+    alive = True
+    while time.time() < deadline and alive:
+        try:
+            os.kill(worker_pid, 0)
+            with open(f"/proc/{worker_pid}/stat") as f:
+                alive = f.read().split()[2] != "Z"
+        except (ProcessLookupError, FileNotFoundError):
+            alive = False
+        time.sleep(0.2)
+    if alive:
+        os.kill(worker_pid, signal.SIGKILL)
+    assert not alive, "the back-end worker outlived the killed main process"

@@ -31,12 +31,13 @@ log = logging.getLogger(__name__)
 MAX_IN_FLIGHT = 16
 # How often (s) a blocked wait checks that the worker is still alive.
 POLL_S = 1.0
+_NOTHING = object()  # no message within POLL_S
 
 
 def _serve(inbox, outbox, parent_pid: int) -> None:
     """Worker loop: the first message sets up one back end (camera, config, wheels), then keyframes until
     ``None`` arrives; then its final report. It also ends when the main process is gone (killed with
-    SIGKILL, say), so no orphan is left behind."""
+    SIGKILL, say), checked before every message, so no orphan is left behind."""
     # Ctrl-C and SIGTERM go to the whole process group: the main process decides when to stop.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -49,8 +50,13 @@ def _serve(inbox, outbox, parent_pid: int) -> None:
         try:
             msg = inbox.get(timeout=POLL_S)
         except queue.Empty:
-            if os.getppid() != parent_pid:
-                return
+            msg = _NOTHING
+        if os.getppid() != parent_pid:
+            # Nobody will read the results still buffered for the outbox's pipe: without this, exiting
+            # waits for its feeder thread, which blocks on the full pipe for ever (an orphan).
+            outbox.cancel_join_thread()
+            return
+        if msg is _NOTHING:
             continue
         if msg is None:
             report = {**backend_scale_report(be), "n_resets": be.n_resets} if be is not None else None
