@@ -14,6 +14,7 @@ from windowvo.backend.ground import (
     floor_mask,
     level_up,
     levelled_mount,
+    normal_from_tilt_deg,
     tilt_significant,
 )
 from windowvo.backend.smoother import SlidingWindowBackend, WheelCalibration
@@ -202,6 +203,7 @@ def test_floor_attitude_is_the_median_of_the_fits():
     assert np.degrees(np.arccos(np.clip(fa.normal @ truth, -1, 1))) < 0.1
     tx, ty = fa.tilt_deg()
     assert tx == pytest.approx(1.0, abs=0.1) and abs(ty) < 0.1
+    assert np.allclose(normal_from_tilt_deg(tx, ty), fa.normal, atol=1e-12)  # the summary's way back
     # standard error of the median: 1.25 * hypot(0.3, 0.3) / sqrt(60) = 0.07 deg, the ramp's fits aside
     assert 0.04 < fa.standard_error_deg() < 0.11
     assert FloorAttitude(1, 10).standard_error_deg() == float("inf")

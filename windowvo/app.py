@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .backend.ground import levelled_mount, tilt_significant
+from .backend.ground import levelled_mount, normal_from_tilt_deg, tilt_significant
 from .config import Config, RerunMode, RunMode
 from .errors import WindowVOError
 from .eval.metrics import AccuracyReport
@@ -130,7 +130,8 @@ def _run_job(cfg: Config, progress, worker: BackendWorker | None) -> JobReport:
 def floor_summary(records: list[FrameRecord], T_base_cam: np.ndarray | None = None) -> dict:
     """What the run learnt about the floor: how much the base rocked (median over keyframes of
     ``base_rocking_deg``, None when never judged), at how many keyframes floor points were tied to the floor in
-    a level frame because of it, and the floor's tilt in the base frame at the end (None: too few floor fits)."""
+    a level frame because of it, the floor's tilt in the base frame at the end (None: too few floor fits), at how
+    many keyframes the learnt normal was used, and ``T_base_cam`` corrected by that tilt (when given)."""
     rocking = [rec.base_rocking_deg for rec in records if rec.is_keyframe and np.isfinite(rec.base_rocking_deg)]
     tilts = [(rec.floor_tilt_x_deg, rec.floor_tilt_y_deg, rec.floor_tilt_se_deg) for rec in records
              if rec.is_keyframe and np.isfinite(rec.floor_tilt_x_deg)]
@@ -140,13 +141,8 @@ def floor_summary(records: list[FrameRecord], T_base_cam: np.ndarray | None = No
             "floor_tilt_se_deg": None if not tilts else round(float(tilts[-1][2]), 3),
             "floor_normal_learnt_keyframes": sum(1 for rec in records if rec.floor_normal_learnt),
             "T_base_cam_levelled": None if not tilts or T_base_cam is None else [
-                round(float(v), 6) for v in levelled_mount(T_base_cam, _tilt_normal(*tilts[-1][:2])).ravel()]}
+                round(float(v), 6) for v in levelled_mount(T_base_cam, normal_from_tilt_deg(*tilts[-1][:2])).ravel()]}
 
-
-def _tilt_normal(tilt_x_deg: float, tilt_y_deg: float) -> np.ndarray:
-    """The floor normal whose tilt toward the base's +x and +y is given (``FloorAttitude.tilt_deg``)."""
-    n = np.array([np.tan(np.radians(tilt_x_deg)), np.tan(np.radians(tilt_y_deg)), 1.0])
-    return n / np.linalg.norm(n)
 
 
 def _progress_bar(cfg: Config, total: int):

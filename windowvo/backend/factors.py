@@ -52,6 +52,27 @@ def C(k: int) -> int:
     return gtsam.symbol(CALIBRATION_SYMBOL, k)
 
 
+# ---------------------------------------------------------------------------- iSAM2 settings
+
+
+def relinearize_thresholds(cfg: BackendConfig) -> float | gtsam.ISAM2ThresholdMap:
+    """iSAM2's relinearisation threshold, one for all states or one per kind of state.
+
+    Landmarks off the floor may have their own threshold in metres: most of an update's work is
+    re-eliminating the landmarks a new keyframe sees, and those are mostly metres away, where a few
+    centimetres change a projection by a fraction of a pixel. Floor landmarks (near, and their heights
+    carry the scale) keep the poses' threshold: relaxing theirs too made a ramp 1.4x worse. A map must
+    name every symbol in the graph."""
+    t = cfg.relinearize_threshold
+    if cfg.landmark_relinearize_threshold_m is None:
+        return t
+    m = gtsam.ISAM2ThresholdMap()
+    for sym, dim, value in ((POSE_SYMBOL, 6, t), (CALIBRATION_SYMBOL, 2, t), (FLOOR_LANDMARK_SYMBOL, 3, t),
+                            (LANDMARK_SYMBOL, 3, cfg.landmark_relinearize_threshold_m)):
+        m.insert((sym, np.full(dim, value)))
+    return m
+
+
 # ---------------------------------------------------------------------------- robust losses
 
 
@@ -80,24 +101,6 @@ def threshold(explicit: float | None, dim: int, cfg: BackendConfig) -> float:
 
 
 # ---------------------------------------------------------------------------- priors
-
-
-def relinearize_thresholds(cfg: BackendConfig) -> float | gtsam.ISAM2ThresholdMap:
-    """iSAM2's relinearisation threshold, one for all states or one per kind of state.
-
-    Landmarks off the floor may have their own threshold in metres: most of an update's work is
-    re-eliminating the landmarks a new keyframe sees, and those are mostly metres away, where a few
-    centimetres change a projection by a fraction of a pixel. Floor landmarks (near, and their heights
-    carry the scale) keep the poses' threshold: relaxing theirs too made a ramp 1.4x worse. A map must
-    name every symbol in the graph."""
-    t = cfg.relinearize_threshold
-    if cfg.landmark_relinearize_threshold_m is None:
-        return t
-    m = gtsam.ISAM2ThresholdMap()
-    for sym, dim, value in ((POSE_SYMBOL, 6, t), (CALIBRATION_SYMBOL, 2, t), (FLOOR_LANDMARK_SYMBOL, 3, t),
-                            (LANDMARK_SYMBOL, 3, cfg.landmark_relinearize_threshold_m)):
-        m.insert((sym, np.full(dim, value)))
-    return m
 
 
 def first_pose_prior(key: int, T_world_base: np.ndarray, sigma: float = 1e-4):

@@ -201,11 +201,13 @@ class FloorAttitude:
     def __init__(self, min_fits: int, max_fits: int):
         self.min_fits = min_fits
         self._xy: deque[tuple[float, float]] = deque(maxlen=max_fits)
+        self._normal: np.ndarray | None = None  # the median, computed once per fit (read several times)
 
     def add(self, normal_base: np.ndarray) -> None:
         n = np.asarray(normal_base, float)
         n = n / np.linalg.norm(n)
         self._xy.append((float(n[0]), float(n[1])))
+        self._normal = None
 
     @property
     def ready(self) -> bool:
@@ -217,8 +219,10 @@ class FloorAttitude:
         axis before any)."""
         if not self._xy:
             return np.array([0.0, 0.0, 1.0])
-        x, y = np.median(np.asarray(self._xy), axis=0)
-        return np.array([x, y, np.sqrt(max(1.0 - x * x - y * y, 0.0))])
+        if self._normal is None:
+            x, y = np.median(np.asarray(self._xy), axis=0)
+            self._normal = np.array([x, y, np.sqrt(max(1.0 - x * x - y * y, 0.0))])
+        return self._normal.copy()
 
     def standard_error_deg(self) -> float:
         """Standard error of the learnt tilt (deg): the median's, 1.25 sigma / sqrt(n), with the fits' sigma
@@ -239,6 +243,13 @@ class FloorAttitude:
         return float(np.degrees(np.arctan2(n[0], n[2]))), float(np.degrees(np.arctan2(n[1], n[2])))
 
 
+def normal_from_tilt_deg(tilt_x_deg: float, tilt_y_deg: float) -> np.ndarray:
+    """The floor normal whose tilt toward the base's +x and +y is given (the inverse of
+    ``FloorAttitude.tilt_deg``)."""
+    n = np.array([np.tan(np.radians(tilt_x_deg)), np.tan(np.radians(tilt_y_deg)), 1.0])
+    return n / np.linalg.norm(n)
+
+
 def levelled_mount(T_base_cam: np.ndarray, normal_base: np.ndarray) -> np.ndarray:
     """``T_base_cam`` with its rotation corrected so that a floor whose normal the camera saw as
     ``normal_base`` (in the base frame ``T_base_cam`` defines) is the base's xy plane.
@@ -249,9 +260,9 @@ def levelled_mount(T_base_cam: np.ndarray, normal_base: np.ndarray) -> np.ndarra
     n = np.asarray(normal_base, float)
     n = n / np.linalg.norm(n)
     axis = np.cross(n, [0.0, 0.0, 1.0])
-    angle = float(np.arctan2(np.linalg.norm(axis), n[2]))
-    R_fix = so3_exp(axis / np.linalg.norm(axis) * angle) if angle > 1e-12 else np.eye(3)
+    s = float(np.linalg.norm(axis))
+    angle = float(np.arctan2(s, n[2]))
+    R_fix = so3_exp(axis / s * angle) if angle > 1e-12 else np.eye(3)
     T = np.array(T_base_cam, float, copy=True)
     T[:3, :3] = R_fix @ T[:3, :3]
     return T
-
