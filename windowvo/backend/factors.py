@@ -2,8 +2,10 @@
 
 Pure functions: they take measurements, keys and noise settings and return GTSAM factors;
 they never touch the smoother. Keys: ``X(k)`` is ``T_world_base`` of keyframe k (``Pose3``),
-``L(id)`` the world position of the landmark of track ``id`` (``Point3``), ``C(k)`` the wheel
-calibration at keyframe k (``Point2``: distance scale, yaw bias in rad per metre).
+``L(id)`` the world position of the landmark of track ``id`` (``Point3``; ``G(id)`` for a floor
+landmark, so that iSAM2 can relinearise the two kinds at their own thresholds,
+:func:`relinearize_thresholds`), ``C(k)`` the wheel calibration from keyframe k on (``Point2``:
+distance scale, yaw bias in rad per metre).
 
 Robust losses: GTSAM applies an M-estimator to the norm of the whitened residual, whose
 square is chi-square distributed with the factor's dimension. :func:`robust_threshold` turns a

@@ -17,7 +17,9 @@ the base's tilt between consecutive keyframes), and ``level_up`` gives the floor
 the floor points are then measured along instead (``factors.level_ground_factor``). And a camera
 mount is seldom calibrated to better than a degree: ``FloorAttitude`` learns the floor's normal in
 the base frame from the planes fitted so far, so that a mount's pitch or roll error does not turn
-into a scale error (1 deg of pitch made 5.5% of scale error on the rendered loop).
+into a scale error (1 deg of pitch made 5.5% of scale error on the rendered loop);
+``tilt_significant`` says when that tilt is the mount's, and ``levelled_mount`` corrects
+``T_base_cam`` by it.
 
 Pure numpy: no GTSAM here, so the detector is tested on its own.
 """

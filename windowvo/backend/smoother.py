@@ -7,7 +7,7 @@ keyframe's base frame; a level frame when the base rocks, ``_level_up``; a learn
 ``ground.mount_calibration``, ``floor_normal_base``), and submits one update.
 
 States: ``X(k)`` is ``T_world_base`` of keyframe k, ``L(id)`` the world position of the landmark
-of track ``id``, ``C(k)`` the wheel calibration (distance scale, yaw bias per metre) from keyframe k on,
+of track ``id`` (``G(id)`` for a floor landmark), ``C(k)`` the wheel calibration (distance scale, yaw bias per metre) from keyframe k on,
 one per block of keyframes that leave the window together.
 The camera enters the projection factors through ``T_base_cam`` (GTSAM's ``body_P_sensor``).
 
