@@ -4,7 +4,10 @@
 factor builders (``factors.py``) for factors, the landmark manager (``landmarks.py``) for
 landmarks, the ground cue (``ground.py``) for floor landmarks and the floor they are tied to (the
 keyframe's base frame; a level frame when the base rocks, ``_level_up``; a learnt mount tilt with
-``ground.mount_calibration``, ``floor_normal_base``), and submits one update.
+``ground.mount_calibration``, ``floor_normal_base``), and submits one update. ``_update`` builds it
+in steps, one method each: the pose and its motion factors (``_pose_factors``), the observations of
+known landmarks (``_observation_factors``), new landmarks with their ground factors
+(``_new_landmark_factors``, ``_birth_ground_factor``), the smoother update (``_solve``).
 
 States: ``X(k)`` is ``T_world_base`` of keyframe k, ``L(id)`` the world position of the landmark
 of track ``id`` (``G(id)`` for a floor landmark), ``C(k)`` the wheel calibration (distance scale, yaw bias per metre) from keyframe k on,
@@ -327,8 +330,10 @@ class SlidingWindowBackend:
         return C(k)
 
     def _update(self, fo: FrontendOutput, odom, T_guess, use_vision: bool, allow_new: bool) -> tuple[int, int, int]:
+        """One keyframe: its pose and motion factors, its observations and new landmarks (with their ground
+        factors), one smoother update, then the landmark bookkeeping. Returns (new landmarks, projection
+        factors, ground factors)."""
         k = self.k
-        cfg = self.cfg
         if self.calibration_wanted and not self.calibrate and self.n_ground_keyframes > 0:
             self.calibrate, self.calib_start = True, k
             log.info("keyframe %d: the floor is in view; wheel scale and yaw bias are now estimated online", k)
@@ -337,13 +342,7 @@ class SlidingWindowBackend:
         values = gtsam.Values()
         stamps: dict[int, float] = {}
         self.level_frame = self.floor_normal_learnt = False
-        values.insert(X(k), gtsam.Pose3(T_guess))
-        stamps[X(k)] = float(k)
-        self._motion_factors(graph, values, stamps, k, odom, T_guess)
-        if cfg.planar_prior.enabled and k > 0:
-            graph.add(fac.planar_attitude_factor(X(k), cfg))
-            if cfg.planar_prior.height_prior:
-                graph.add(fac.height_prior_factor(X(k), T_guess, cfg.planar_prior.height_sigma_m))
+        self._pose_factors(graph, values, stamps, odom, T_guess)
         # Outlier landmarks flagged after the previous update: remove their factors; the key stays
         # alive with its birth prior until it is marginalised.
         remove = self.lm.take_removals()
@@ -352,53 +351,101 @@ class SlidingWindowBackend:
         w0 = self.window_start(k)
         if self._retie_floor:
             remove = remove + self._retie_window_floor(graph, owners, w0)
-        n_vis = n_ground = 0
         new_lms: list[int] = []
+        n_vis = n_ground = 0
         if use_vision:
-            poses = {kk: self.kf_pose[kk] for kk in range(w0, k)}
-            poses[k] = T_guess
-            cams = LandmarkManager.camera_poses(poses, self.T_base_cam)
-            seen, candidates = self.lm.observe(fo.track_ids, fo.pixels_undistorted, k, allow_new, fo.pixel_sigma_scale)
-            for tid, uv, sc in seen:
-                key = self.lm.landmarks[tid].key
-                graph.add(fac.projection_factor(uv, X(k), key, self._pixel_noise(sc), self.K, self.body_P_sensor))
-                owners.append((tid, k, False))
-                stamps[key] = float(k)
-                n_vis += 1
-            budgets = self._budgets()  # no landmark is born before both uses below
-            born = self._triangulate_candidates(candidates, cams, T_guess, budgets)
-            on_floor, floor_fit = self._floor_of(born, T_guess)
-            born, on_floor = self._within_budget(born, on_floor, budgets)
-            up_world = self._level_up(T_guess, floor_fit if on_floor.any() else None)
-            n_base = self.floor_normal_base()  # the same for all of this keyframe's floor points
-            floor_offset = self.floor_offset(n_base)
-            cam_center = (T_guess @ self.T_base_cam)[:3, 3]
-            for (tid, p), floor in zip(born, on_floor):
-                key = fac.G(tid) if floor else L(tid)
-                values.insert(key, gtsam.Point3(p))
-                stamps[key] = float(k)
-                graph.add(fac.landmark_birth_prior(key, p, float(np.linalg.norm(p - cam_center))))
-                owners.append(None)
-                for kk, uv_k, sc in self.lm.promote(tid, k, bool(floor)):
-                    if kk >= w0:
-                        graph.add(fac.projection_factor(uv_k, X(kk), key, self._pixel_noise(sc), self.K,
-                                                        self.body_P_sensor))
-                        owners.append((tid, kk, False))
-                        n_vis += 1
-                if floor:
-                    if up_world is None:
-                        p_base = (p - T_guess[:3, 3]) @ T_guess[:3, :3]
-                        graph.add(fac.ground_factor(X(k), key, p_base, floor_offset, self.ground_sigma_m, cfg,
-                                                    n_base))
-                    else:
-                        graph.add(fac.level_ground_factor(X(k), key, up_world, self.floor_z, self.ground_sigma_m,
-                                                          cfg))
-                        self.n_level_ground_factors += 1
-                        self.level_frame = True
-                    owners.append((tid, k, up_world is None))
-                    n_ground += 1
-                    self.floor_normal_learnt = n_base is not None
-                new_lms.append(tid)
+            n_vis, candidates = self._observation_factors(graph, stamps, owners, fo, allow_new)
+            new_lms, n_born_vis, n_ground = self._new_landmark_factors(graph, values, stamps, owners, candidates,
+                                                                       w0, T_guess)
+            n_vis += n_born_vis
+        idx = self._solve(graph, values, stamps, remove, new_lms)
+        self.lm.record_factors(owners, idx)
+        self.n_ground_factors += n_ground
+        self.n_ground_keyframes += int(n_ground > 0)
+        self._refresh_states()
+        self.lm.prune(w0)
+        ids, p_world, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, k)
+        errs = reprojection_errors(self.camera, self.kf_pose[k], self.T_base_cam, p_world, uv)
+        self.lm.check_outliers(ids, errs, self.window_start(k + 1))
+        return len(new_lms), n_vis, n_ground
+
+    def _pose_factors(self, graph, values, stamps: dict[int, float], odom: OdometryStep | None, T_guess) -> None:
+        """The new keyframe's pose, its motion factors and the planar attitude (and height) priors."""
+        k, cfg = self.k, self.cfg
+        values.insert(X(k), gtsam.Pose3(T_guess))
+        stamps[X(k)] = float(k)
+        self._motion_factors(graph, values, stamps, k, odom, T_guess)
+        if cfg.planar_prior.enabled and k > 0:
+            graph.add(fac.planar_attitude_factor(X(k), cfg))
+            if cfg.planar_prior.height_prior:
+                graph.add(fac.height_prior_factor(X(k), T_guess, cfg.planar_prior.height_sigma_m))
+
+    def _observation_factors(self, graph, stamps: dict[int, float], owners: list, fo: FrontendOutput,
+                             allow_new: bool) -> tuple[int, list[int]]:
+        """Projection factors of the landmarks the new keyframe sees. Returns their number and the tracks
+        that may become landmarks now."""
+        k = self.k
+        seen, candidates = self.lm.observe(fo.track_ids, fo.pixels_undistorted, k, allow_new, fo.pixel_sigma_scale)
+        for tid, uv, sc in seen:
+            key = self.lm.landmarks[tid].key
+            graph.add(fac.projection_factor(uv, X(k), key, self._pixel_noise(sc), self.K, self.body_P_sensor))
+            owners.append((tid, k, False))
+            stamps[key] = float(k)
+        return len(seen), candidates
+
+    def _new_landmark_factors(self, graph, values, stamps: dict[int, float], owners: list, candidates: list[int],
+                              w0: int, T_guess: np.ndarray) -> tuple[list[int], int, int]:
+        """New landmarks (within the budgets): each with its birth prior, its projection factors in the
+        window and, on the floor, its ground factor. Returns (their track ids, projection factors, ground
+        factors)."""
+        k = self.k
+        poses = {kk: self.kf_pose[kk] for kk in range(w0, k)}
+        poses[k] = T_guess
+        cams = LandmarkManager.camera_poses(poses, self.T_base_cam)
+        budgets = self._budgets()  # no landmark is born before both uses below
+        born = self._triangulate_candidates(candidates, cams, T_guess, budgets)
+        on_floor, floor_fit = self._floor_of(born, T_guess)
+        born, on_floor = self._within_budget(born, on_floor, budgets)
+        up_world = self._level_up(T_guess, floor_fit if on_floor.any() else None)
+        cam_center = (T_guess @ self.T_base_cam)[:3, 3]
+        new_lms: list[int] = []
+        n_vis = n_ground = 0
+        for (tid, p), floor in zip(born, on_floor):
+            key = fac.G(tid) if floor else L(tid)
+            values.insert(key, gtsam.Point3(p))
+            stamps[key] = float(k)
+            graph.add(fac.landmark_birth_prior(key, p, float(np.linalg.norm(p - cam_center))))
+            owners.append(None)
+            for kk, uv_k, sc in self.lm.promote(tid, k, bool(floor)):
+                if kk >= w0:
+                    graph.add(fac.projection_factor(uv_k, X(kk), key, self._pixel_noise(sc), self.K,
+                                                    self.body_P_sensor))
+                    owners.append((tid, kk, False))
+                    n_vis += 1
+            if floor:
+                graph.add(self._birth_ground_factor(key, p, T_guess, up_world))
+                owners.append((tid, k, up_world is None))
+                n_ground += 1
+            new_lms.append(tid)
+        return new_lms, n_vis, n_ground
+
+    def _birth_ground_factor(self, key: int, p_world: np.ndarray, T_guess: np.ndarray,
+                             up_world: np.ndarray | None):
+        """A new floor landmark's ground factor at its birth keyframe: along the base's z axis (or the
+        learnt floor normal) natively, or along the level frame's up when the base rocks."""
+        k, cfg = self.k, self.cfg
+        n_base = self.floor_normal_base()  # the same for all of this keyframe's floor points
+        self.floor_normal_learnt = n_base is not None
+        if up_world is not None:
+            self.n_level_ground_factors += 1
+            self.level_frame = True
+            return fac.level_ground_factor(X(k), key, up_world, self.floor_z, self.ground_sigma_m, cfg)
+        p_base = (p_world - T_guess[:3, 3]) @ T_guess[:3, :3]
+        return fac.ground_factor(X(k), key, p_base, self.floor_offset(n_base), self.ground_sigma_m, cfg, n_base)
+
+    def _solve(self, graph, values, stamps: dict[int, float], remove: list[int], new_lms: list[int]) -> list[int]:
+        """One smoother update (plus ``extra_iterations``) and the new estimate; the new factors' indices."""
+        k, cfg = self.k, self.cfg
         ts_map = gtsam.FixedLagSmootherKeyTimestampMap()
         for key, t in stamps.items():
             ts_map.insert((key, t))
@@ -411,15 +458,7 @@ class SlidingWindowBackend:
             # Undo the bookkeeping of this update before the caller resets the window.
             self.lm.forget(new_lms)
             raise
-        self.lm.record_factors(owners, idx)
-        self.n_ground_factors += n_ground
-        self.n_ground_keyframes += int(n_ground > 0)
-        self._refresh_states()
-        self.lm.prune(w0)
-        ids, p_world, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, k)
-        errs = reprojection_errors(self.camera, self.kf_pose[k], self.T_base_cam, p_world, uv)
-        self.lm.check_outliers(ids, errs, self.window_start(k + 1))
-        return len(new_lms), n_vis, n_ground
+        return idx
 
     def _pixel_noise(self, stretch: float):
         """Projection noise of one observation: the lens's stretch of the undistortion at that pixel scales
