@@ -11,7 +11,7 @@ from windowvo.geometry import inv_T, rotation_angle
 from windowvo.synth.generate import LensPreset, SynthSpec, build_world, lens_fields
 from windowvo.synth.paths import PathKind
 from windowvo.synth.scene import Renderer
-from windowvo.types import Frame, GateOutcome
+from windowvo.types import Frame, GateOutcome, KeyframeReason
 
 
 @pytest.fixture(scope="module")
@@ -278,3 +278,18 @@ def test_grid_cell_counts_and_spread():
     fe = Frontend(cam, FrontendConfig(), KeyframeConfig(), GateConfig())
     assert fe.spread(px) == 3 / 48
     assert fe.spread(np.zeros((0, 2))) == 0.0
+
+
+def test_losing_every_track_at_once_makes_a_keyframe(world):
+    """Every track lost in one frame (the lens covered for a frame) leaves no parallax to judge a standstill by;
+    without wheels the old code took that as standing still and, once the view came back with new tracks only,
+    never made another keyframe."""
+    cam = world[0].camera
+    fe = Frontend(cam, FrontendConfig(), KeyframeConfig(), GateConfig())
+    assert fe.process(Frame(0, 0.0, render(world, 1.0)[0])).is_keyframe
+    covered = np.full((cam.height, cam.width), 90, np.uint8)
+    fo = fe.process(Frame(1, 0.05, covered))
+    assert len(fo.track_ids) == 0 and not fo.standstill
+    assert fo.is_keyframe and fo.keyframe_reason is KeyframeReason.TRACK_LOSS
+    later = [fe.process(Frame(i, i * 0.05, render(world, 1.0 + i * 0.05)[0])) for i in range(2, 30)]
+    assert sum(f.is_keyframe for f in later[1:]) >= 2  # keyframing goes on from the view that came back

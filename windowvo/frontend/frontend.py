@@ -25,6 +25,8 @@ from ..config import FrontendConfig, GateConfig, KeyframeConfig, TrackerKind
 from ..types import Frame, FrontendOutput, GateOutcome, KeyframeReason
 from .tracker import KLTTracker, ORBTracker, cell_counts
 
+# Fewest tracks shared with the last keyframe for a two-view geometry, or for judging a standstill.
+MIN_COMMON_TRACKS = 8
 
 @dataclass
 class TwoViewResult:
@@ -206,7 +208,7 @@ class Frontend:
             if n_common:
                 d = (xn[i_cur] - kf_xn[i_kf]) * self.focal
                 parallax = float(np.median(np.linalg.norm(d, axis=1)))
-            if n_common >= 8 and parallax > 0.5:
+            if n_common >= MIN_COMMON_TRACKS and parallax > 0.5:
                 two_view = essential_ransac(
                     kf_xn[i_kf], xn[i_cur], self.focal, self.cfg.ransac_threshold_px, self.cfg.ransac_confidence
                 )
@@ -259,7 +261,12 @@ class Frontend:
         wheels_still = odom_motion is None or (
             odom_motion[0] < kc.standstill_distance_m and odom_motion[1] < kc.standstill_rotation_rad
         )
-        out.standstill = out.parallax_px < kc.standstill_parallax_px and wheels_still
+        # Parallax says "still" only over tracks the keyframe shares with this frame: with none left (every
+        # track lost at once: a sudden occlusion, a light switched) it is undefined, not zero, and the loss
+        # must make a keyframe, or the keyframe reference is never renewed and no keyframe follows for the
+        # rest of a run without wheels.
+        out.standstill = n_common >= MIN_COMMON_TRACKS and out.parallax_px < kc.standstill_parallax_px \
+            and wheels_still
         if force:
             return KeyframeReason.LAST
         if out.standstill:
