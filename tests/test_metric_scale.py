@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from conftest import SHARED_DATA, make_config
 
-from windowvo.app import floor_summary, run_job
+from windowvo.app import floor_summary, run_and_report, run_job
 from windowvo.backend.ground import MOUNT_TILT_MIN_DEG, tilt_significant
 from windowvo.config import config_from_dict
 from windowvo.geometry import rotation_angle
@@ -192,3 +192,34 @@ def test_kitti_base_is_on_the_road():
     for k in (10, 50):
         T_w_cam = gt.T_world_base[k] @ T_bc  # world = base at frame 0, so camera 0 sits at T_bc
         assert np.allclose(T_w_cam[:3, 3], T_bc[:3, :3] @ T_c0_ck[k][:, 3] + T_bc[:3, 3], atol=1e-6)
+
+
+def test_monocular_run_becomes_metric_when_the_floor_comes_into_view(seq_factory, tmp_path):
+    """A monocular run that starts with no floor in view (here: everything below the horizon blanked for the first
+    3 s) is up to scale at first; once the floor is in view its scale is fixed there, the trajectory so far is
+    rescaled, and the whole run is metric. Before, such a run stayed up to scale to the end."""
+    import shutil
+
+    import cv2
+    import yaml
+
+    src = seq_factory("mono_loop", path=PathKind.LOOP, duration_s=25.0, seed=34)
+    seq = tmp_path / "seq"
+    shutil.copytree(src, seq)
+    cam = yaml.safe_load((seq / "camera.yaml").read_text())
+    z_cam_in_base = np.asarray(cam["T_base_cam"], float).reshape(4, 4)[:3, 2]
+    horizon_row = cam["cy"] - cam["fy"] * np.tan(np.arcsin(-z_cam_in_base[2]))
+    hidden = 90
+    for png in sorted((seq / "images").glob("*.png"))[:hidden]:
+        img = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+        top = int(horizon_row) + 8
+        img[top:] = int(img[top - 5: top].mean())
+        cv2.imwrite(str(png), img)
+    r = run_and_report(make_config(seq, tmp_path / "out", backend={"use_odometry": False}))
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    a = summary["accuracy"]
+    print(f"floor hidden for {hidden} frames: metric from frame {r.metric_from_frame}, ATE SE3 {a['ate_se3_rmse_m']:.4f} "
+          f"Sim3 {a['ate_sim3_rmse_m']:.4f} (scale {a['sim3_scale']:.4f}) over {a['path_length_m']:.1f} m")
+    assert r.monocular and r.metric and r.metric_from_frame is not None and r.metric_from_frame >= hidden
+    assert summary["metric"] and summary["metric_from_frame"] == r.metric_from_frame
+    assert a["ate_se3_rmse_m"] <= 0.01 * a["path_length_m"], a  # the issue's bound for a monocular metric run

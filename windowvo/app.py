@@ -185,6 +185,7 @@ def run_and_report(cfg: Config) -> RunResult:
         "monocular": r.monocular,
         "metric": r.metric,
         "scale_sources": r.scale_sources,
+        "metric_from_frame": r.metric_from_frame,
         "wheel_calibration": None if r.wheel_calibration is None else {
             "scale": round(r.wheel_calibration.scale, 5), "scale_sigma": round(r.wheel_calibration.scale_sigma, 5),
             "yaw_bias_per_m": round(r.wheel_calibration.yaw_bias_per_m, 6),
@@ -205,7 +206,9 @@ def run_and_report(cfg: Config) -> RunResult:
         lines.append("monocular run (no wheel odometry, no floor at the camera height): the trajectory is up to scale")
     else:
         synthetic = " (wheels synthetic, see odometry.csv header)" if summary["odometry_synthetic"] else ""
-        lines.append("metric scale from: " + ", ".join(r.scale_sources) + synthetic)
+        late = (f", from frame {r.metric_from_frame} on (the floor came into view there; the trajectory before it "
+                f"is rescaled)" if r.metric_from_frame is not None else "")
+        lines.append("metric scale from: " + ", ".join(r.scale_sources) + synthetic + late)
     if r.wheel_calibration is not None:
         c = r.wheel_calibration
         lines.append(f"wheel calibration: scale {c.scale:.4f} ± {c.scale_sigma:.4f}, "

@@ -58,6 +58,9 @@ class RunResult:
     last_frame_index: int = -1
     metric: bool = False  # the scale is metric (wheels, or the ground plane at the camera height)
     scale_sources: list[str] = field(default_factory=list)
+    # A monocular run that saw the floor only later: metric from this frame on (the trajectory before it
+    # rescaled, the causal poses before it up to scale).
+    metric_from_frame: int | None = None
     wheel_calibration: WheelCalibration | None = None  # final online estimate (with wheels)
     trajectory_online: Trajectory | None = None  # causal pose per frame, as a robot had it at that time
 
@@ -179,7 +182,7 @@ class Pipeline:
         if interrupted and self.worker is not None and self.vo.remote_report is None:
             # Aborted at once: what the worker knew about the scale is lost; the poses are not.
             self.vo.remote_report = {"metric": self.use_odometry, "scale_sources": [], "wheel_calibration": None,
-                                     "n_resets": 0}
+                                     "metric_from_frame": None, "n_resets": 0}
         if stop["signal"] is not None or interrupted:
             interrupted = True
             last = self.frames[-1][0] if self.frames else -1

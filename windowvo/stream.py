@@ -159,6 +159,7 @@ class Odometry:
         note = tr.note
         if bo is not None:
             self.last_kf_online = bo.T_world_base.copy()
+            self.kf_pose_by_frame.update(bo.earlier_keyframe_poses)
             self.kf_pose_by_frame.update(bo.keyframe_poses)
             if bo.status is BackendStatus.RECOVERED:
                 note = (note + "; " if note else "") + "backend reset"
@@ -254,4 +255,5 @@ def backend_scale_report(be: SlidingWindowBackend) -> dict:
         "metric": bool(be.metric),
         "scale_sources": [s.value for s in be.scale_sources()],
         "wheel_calibration": be.calibration_with_sigma() if be.calibrate and be.k >= 0 else None,
+        "metric_from_frame": None if be.metric_from_keyframe is None else be.kf_frame[be.metric_from_keyframe],
     }

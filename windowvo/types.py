@@ -132,6 +132,9 @@ class BackendOutput:
     floor_tilt_y_deg: float = float("nan")
     floor_tilt_se_deg: float = float("nan")  # its standard error
     floor_normal_learnt: bool = False  # this keyframe's floor points were measured along the learnt normal
+    # Keyframes before the window whose poses this update changed (frame index -> T_world_base): every one at a
+    # monocular run's late metric start, when the floor first came into view and the trajectory was rescaled.
+    earlier_keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass

@@ -52,7 +52,15 @@ from ..geometry import inv_T, make_T, rot_z
 from ..types import BackendOutput, BackendStatus, FrontendOutput, GateOutcome, OdometryStep, ScaleSource
 from . import factors as fac
 from .factors import C, L, X
-from .ground import FloorAttitude, PlaneFit, attitude_jitter_deg, floor_mask, level_up
+from .ground import (
+    FloorAttitude,
+    PlaneFit,
+    attitude_jitter_deg,
+    fit_floor_plane,
+    floor_candidates,
+    floor_mask,
+    level_up,
+)
 from .landmarks import LandmarkManager, reprojection_errors, reprojection_rms, triangulate_midpoint
 
 log = logging.getLogger(__name__)
@@ -61,6 +69,9 @@ __all__ = ["C", "L", "OdometryStep", "SlidingWindowBackend", "X"]
 
 # After a reset the calibration restarts from its last estimate with this share of the prior sigmas.
 RESET_CALIBRATION_SIGMA_FACTOR = 0.2
+# A monocular run that saw no floor at its start becomes metric when the floor planes of two consecutive
+# keyframes give scales within this share of each other (one plane could be a table top).
+LATE_START_AGREEMENT = 0.1
 # Smallest camera height (m) for which the ground cue makes sense.
 MIN_CAMERA_HEIGHT_M = 0.05
 # Keyframes of the window needed before the base's rocking is judged (a median over fewer is noise).
@@ -125,8 +136,11 @@ class SlidingWindowBackend:
         self.mount_normal_used = g.mount_calibration is MountCalibration.ON
         self._release_scale = self._retie_floor = False
         self.floor_normal_learnt = False  # the last update measured its floor points along the learnt normal
-        # Metric scale: from the wheels, or (monocular) once the ground plane has fixed the first baseline.
+        # Metric scale: from the wheels, or (monocular) once the ground plane has fixed the first baseline, or
+        # later, when the floor first comes into view (``_late_metric_start``).
         self.metric = use_odometry
+        self.metric_from_keyframe: int | None = None  # a late metric start: the keyframe it happened at
+        self._late_scale: float | None = None  # the last keyframe's floor scale while waiting for one
         self.n_ground_factors = 0
         self.n_level_ground_factors = 0  # of them, measured along the floor's normal (the base rocks)
         self.base_rocking_deg = float("nan")  # attitude_jitter_deg over the window at the last floor fit
@@ -201,12 +215,15 @@ class SlidingWindowBackend:
         allow_new = fo.gate in (GateOutcome.PASS, GateOutcome.LOW_PARALLAX) or k == 1
         T_guess = self._initial_guess(fo, odom)
         n_new = n_vis = n_ground = 0
+        earlier: dict[int, np.ndarray] = {}
         try:
             n_new, n_vis, n_ground = self._update(fo, odom, T_guess, fo.vision_ok, allow_new)
             if k == 0:
                 status = BackendStatus.INIT
             elif not fo.vision_ok:
                 status = BackendStatus.ODOMETRY_FALLBACK
+            elif self._waiting_for_floor() and k >= 2:
+                earlier = self._late_metric_start(fo)
         except RuntimeError as err:
             msg = " ".join(str(err).split())[:300]
             log.warning("keyframe %d (frame %d): smoother failed (%s); resetting the window from the last good pose",
@@ -214,6 +231,7 @@ class SlidingWindowBackend:
             self._reset_with(fo, odom, T_guess)
             status = BackendStatus.RECOVERED
         out = self._output(fo, n_new, n_vis, n_ground, status)
+        out.earlier_keyframe_poses = earlier
         out.backend_ms = (time.perf_counter() - t0) * 1000.0
         return out
 
@@ -240,7 +258,8 @@ class SlidingWindowBackend:
                 self.metric = True
                 log.info("monocular start: the floor plane sets the first baseline to %.3f m (metric)", baseline)
             elif self.use_ground:
-                log.warning("monocular start: no floor plane in the first two keyframes; the run is up to scale")
+                log.warning("monocular start: no floor plane in the first two keyframes; the run is up to scale until the "
+                            "floor comes into view")
             T_cur_kf = make_T(fo.R_cam_kf_cam, t_unit * (baseline or 1.0))
             T_world_cam = T_prev @ self.T_base_cam @ inv_T(T_cur_kf)
             return T_world_cam @ inv_T(self.T_base_cam)
@@ -273,8 +292,6 @@ class SlidingWindowBackend:
         # the plane around the camera centre instead (a rotation-only base frame at the camera).
         cam_c = self.T_base_cam[:3, 3]
         shifted = np.asarray(pts) - cam_c
-        from .ground import fit_floor_plane, floor_candidates
-
         cand = floor_candidates(shifted, np.zeros(3), 1.0, self.cfg.ground)
         fit = fit_floor_plane(shifted[cand], np.zeros(3), 1.0, self.cfg.ground, self._rng, metric_scale_known=False)
         if fit is None or fit.camera_height_m <= 1e-6:
@@ -422,7 +439,7 @@ class SlidingWindowBackend:
                                                     self.body_P_sensor))
                     owners.append((tid, kk, False))
                     n_vis += 1
-            if floor:
+            if floor and not self._waiting_for_floor():
                 graph.add(self._birth_ground_factor(key, p, T_guess, up_world))
                 owners.append((tid, k, up_world is None))
                 n_ground += 1
@@ -460,6 +477,46 @@ class SlidingWindowBackend:
             raise
         return idx
 
+    # ------------------------------------------------------------------ late metric start (monocular)
+    def _floor_scale_now(self) -> float | None:
+        """Up to scale: the factor that would put the floor plane under the window's landmarks at the camera's
+        known height (None: no floor plane in view). Fitted around the camera centre, in the base's
+        orientation, as at the monocular start; a second pass measures ranges in the first fit's heights."""
+        _, pts = self.lm.positions()
+        T_wb = self.kf_pose[self.k]
+        rel = (pts - (T_wb @ self.T_base_cam)[:3, 3]) @ T_wb[:3, :3]
+        height = 1.0
+        for _ in range(2):
+            cand = floor_candidates(rel, np.zeros(3), height, self.cfg.ground)
+            fit = fit_floor_plane(rel[cand], np.zeros(3), height, self.cfg.ground, self._rng, metric_scale_known=False)
+            if fit is None or fit.camera_height_m <= 1e-9:
+                return None
+            height = fit.camera_height_m
+        return self.camera_height_m / height
+
+    def _late_metric_start(self, fo: FrontendOutput) -> dict[int, np.ndarray]:
+        """A monocular run with no floor in its first two keyframes is up to scale until the floor comes into
+        view. When two consecutive keyframes' floor planes agree on the scale, every keyframe pose is
+        rescaled about the first camera centre, the window restarts from this keyframe (metric now, so the
+        ground factors hold the scale from here on), and the run is metric. Returns the rescaled poses of the
+        keyframes before the window (the window's go out as usual), else {}."""
+        scale = self._floor_scale_now()
+        prev, self._late_scale = self._late_scale, scale
+        if scale is None or prev is None or abs(scale / prev - 1.0) > LATE_START_AGREEMENT:
+            return {}
+        s = float(np.sqrt(scale * prev))
+        c0 = (self.kf_pose[0] @ self.T_base_cam)[:3, 3]
+        base_from_cam = inv_T(self.T_base_cam)
+        for kk, T_wb in self.kf_pose.items():
+            T_wc = T_wb @ self.T_base_cam
+            T_wc[:3, 3] = c0 + s * (T_wc[:3, 3] - c0)
+            self.kf_pose[kk] = T_wc @ base_from_cam
+        self.metric, self.metric_from_keyframe = True, self.k
+        self._restart_window(fo, None, self.kf_pose[self.k], with_previous=False)
+        log.info("keyframe %d (frame %d): the floor is in view; the run is metric from here (scale x %.3f), the "
+                 "trajectory so far rescaled", self.k, fo.frame_index, s)
+        return {self.kf_frame[kk]: self.kf_pose[kk] for kk in range(self.window_start()) if kk in self.kf_pose}
+
     def _pixel_noise(self, stretch: float):
         """Projection noise of one observation: the lens's stretch of the undistortion at that pixel scales
         the sensor's pixel sigma (exactly 1 for a pinhole, up to 1/cos^2 of the ray angle for a fisheye)."""
@@ -469,6 +526,10 @@ class SlidingWindowBackend:
 
     def _ground_active(self) -> bool:
         return self.use_ground and self.metric
+
+    def _waiting_for_floor(self) -> bool:
+        """A monocular run that saw no floor at its start: up to scale until ``_late_metric_start``."""
+        return self.use_ground and not self.metric
 
     def _triangulate_candidates(self, candidates: list[int], cams, T_guess: np.ndarray,
                                 budgets: tuple[int, int]) -> list[tuple[int, np.ndarray]]:
@@ -501,8 +562,9 @@ class SlidingWindowBackend:
         """Room for new landmarks now: (others, floor). Landmarks count against the budgets while a
         keyframe among the last ``window_keyframes + 1`` saw them: with ``marginalize_every`` 1 that is
         every landmark the smoother holds during an update; with blocks, those waiting for their block
-        to leave do not take new ones' places."""
-        return self.lm.budgets(self.cfg.ground.max_landmarks if self._ground_active() else 0,
+        to leave do not take new ones' places. A monocular run still waiting for the floor (``_waiting_for_floor``)
+        keeps the floor's budget for tracks below the horizon, so the floor, once in view, is in the window."""
+        return self.lm.budgets(self.cfg.ground.max_landmarks if self.use_ground else 0,
                                self.k - self.cfg.window_keyframes)
 
     def _below_horizon(self, tids: list[int], T_guess: np.ndarray) -> np.ndarray:
@@ -541,6 +603,9 @@ class SlidingWindowBackend:
         refitted per keyframe was noisier than the base attitude the smoother estimates from all the
         evidence, and a mean of the last 30 keyframes' normals (for a camera pitched on its mount) took
         up a ramp's tilt ahead (rendered ramp 0.012 -> 0.051 m) without helping on KITTI."""
+        if self._waiting_for_floor() and born:
+            # No metric height to fit a floor plane at yet: below the horizon is all that is known.
+            return self._below_horizon([tid for tid, _ in born], T_guess), None
         if not self._ground_active() or not born:
             return np.zeros(len(born), bool), None
         new_pts = np.asarray([p for _, p in born])
