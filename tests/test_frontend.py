@@ -1,5 +1,6 @@
 """Front end on rendered frames, checked against the renderer's ground truth."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -293,3 +294,42 @@ def test_losing_every_track_at_once_makes_a_keyframe(world):
     assert fo.is_keyframe and fo.keyframe_reason is KeyframeReason.TRACK_LOSS
     later = [fe.process(Frame(i, i * 0.05, render(world, 1.0 + i * 0.05)[0])) for i in range(2, 30)]
     assert sum(f.is_keyframe for f in later[1:]) >= 2  # keyframing goes on from the view that came back
+
+
+def test_gain_normaliser_cancels_exposure_steps_but_not_scene_changes(world):
+    """An exposure step scales the whole image: every frame comes out at the target mean, exactly the plain
+    normalisation. A region that changes alone (a bright floor coming into view under a blank one) must not
+    change the grey levels elsewhere; scaling every frame to one mean did (by 14% here)."""
+    from windowvo.frontend.frontend import GainNormalizer
+
+    img = render(world, 2.0)[0]
+    gn = GainNormalizer(110.0)
+    first = gn(img)
+    assert first.mean() == pytest.approx(110.0, abs=1.0)
+    darker = np.clip(img.astype(float) * 0.7, 0, 255).astype(np.uint8)  # auto-exposure step
+    out = gn(darker)
+    assert np.array_equal(out, cv2.convertScaleAbs(darker, alpha=110.0 / cv2.mean(darker)[0]))
+    gn2 = GainNormalizer(110.0)
+    blank = img.copy()
+    blank[240:] = int(img[235:240].mean())
+    before = gn2(blank).astype(float)
+    after = gn2(img).astype(float)
+    plain = cv2.convertScaleAbs(img, alpha=110.0 / cv2.mean(img)[0]).astype(float)
+    assert np.abs(after[:200] - before[:200]).mean() < 1.0  # unchanged top half: the same grey levels
+    assert np.abs(plain[:200] - before[:200]).mean() > 3.0  # the plain normalisation shifts it (the test can fail)
+
+
+def test_tracks_survive_a_region_coming_into_view(world):
+    """The front end end to end: the lower half of the view changes at once (a dark obstacle leaves it, the
+    rendered floor is seen again); tracks in the upper half must survive it (scaling both frames to one mean
+    lost most of them: the test can fail)."""
+    cam = world[0].camera
+    fe = Frontend(cam, FrontendConfig(), KeyframeConfig(), GateConfig())
+    img0 = render(world, 2.0)[0].copy()
+    img0[240:] = 20
+    fo0 = fe.process(Frame(0, 0.0, img0))
+    fo1 = fe.process(Frame(1, 0.05, render(world, 2.05)[0]))
+    upper = fo0.pixels[:, 1] < 200  # away from the edge of the dark region, whose corners go with it
+    kept = np.isin(fo0.track_ids[upper], fo1.track_ids).mean()
+    print(f"tracks kept across the change: {kept:.2f}")
+    assert kept >= 0.8

@@ -81,7 +81,8 @@ class FrontendConfig(_Section):
     ransac_confidence: float = Field(0.999, gt=0.5, lt=1, description="essential-matrix RANSAC confidence")
     clahe: bool = Field(False, description="contrast-limited histogram equalisation before tracking (dim scenes)")
     gain_normalization: bool = Field(True, description="scale every frame to one mean intensity before tracking "
-                                                       "(exposure steps)")
+                                                       "(exposure steps), except across a change in part of the "
+                                                       "view (the grey levels outside it are kept)")
     gain_target: float = Field(110.0, gt=0, le=255, description="mean grey level that gain normalisation "
                                "scales every frame to")
     max_ray_angle_deg: float = Field(75.0, gt=0, lt=90, description="field-of-view bound: image regions and "

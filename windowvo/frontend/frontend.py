@@ -27,6 +27,69 @@ from .tracker import KLTTracker, ORBTracker, cell_counts
 
 # Fewest tracks shared with the last keyframe for a two-view geometry, or for judging a standstill.
 MIN_COMMON_TRACKS = 8
+# Gain normalisation. Exposure changes are measured on a grid of cells (columns, rows): the cells whose mean
+# grey ratio to the previous frame lies within GAIN_AGREE_LOG (log) of one another agree on one; at least
+# GAIN_MIN_AGREEING of the cells must. A frame whose mean moved more than GAIN_SCENE_CHANGE_LOG away from
+# that is a scene change in part of the view, not an exposure change.
+GAIN_CELLS = (8, 6)
+GAIN_AGREE_LOG = 0.04
+GAIN_MIN_AGREEING = 0.25
+GAIN_SCENE_CHANGE_LOG = 0.03
+# After one, the gain's offset from the plain normalisation decays by this share (in log) per frame.
+GAIN_OFFSET_DECAY = 0.02
+
+
+def exposure_ratio(prev_cells: np.ndarray, cells: np.ndarray) -> float | None:
+    """The brightness ratio between two frames (their cell means) that most cells agree on: an exposure
+    change scales them all alike, a scene change in part of the view scatters its cells' ratios. The
+    largest group of cells within ``GAIN_AGREE_LOG`` of one another, then their median; None when no
+    group holds ``GAIN_MIN_AGREEING`` of the lit cells."""
+    lit = (cells > 1.0) & (prev_cells > 1.0)
+    if not lit.any():
+        return None
+    lr = np.log(cells[lit] / prev_cells[lit])
+    support = (np.abs(lr[:, None] - lr[None, :]) <= GAIN_AGREE_LOG).sum(axis=1)
+    best = int(np.argmax(support))
+    if support[best] < GAIN_MIN_AGREEING * lr.size:
+        return None
+    return float(np.exp(np.median(lr[np.abs(lr - lr[best]) <= GAIN_AGREE_LOG])))
+
+
+class GainNormalizer:
+    """Scales every frame to one mean grey level, so exposure changes do not break KLT's brightness constancy,
+    except across a scene change in part of the view.
+
+    Scaling to the mean alone turns a bright or textured region coming into view into a gain step on
+    every other pixel (a floor appearing under a blank view raised the mean 16%: every track was lost).
+    So each frame's mean change is checked against the exposure change most cells of a grid agree on
+    (``exposure_ratio``); when the two differ by more than ``GAIN_SCENE_CHANGE_LOG``, the gain follows the
+    cells instead, and the offset this leaves from the plain normalisation decays slowly. Frames without
+    such a change get exactly the plain normalisation.
+    """
+
+    def __init__(self, target_mean: float):
+        self.target = target_mean
+        self.offset = 1.0  # multiplies the plain gain target / mean after a scene change
+        self.prev_cells: np.ndarray | None = None
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        cells = cv2.resize(image, GAIN_CELLS, interpolation=cv2.INTER_AREA).astype(np.float64)
+        prev, self.prev_cells = self.prev_cells, cells
+        mean = float(cv2.mean(image)[0])
+        if mean <= 1.0:
+            return image
+        if prev is not None:
+            exposure = exposure_ratio(prev, cells)
+            prev_mean = float(prev.mean())
+            if exposure is not None and prev_mean > 1.0:
+                scene = np.log(float(cells.mean()) / prev_mean) - np.log(exposure)
+                if abs(scene) > GAIN_SCENE_CHANGE_LOG:
+                    self.offset *= float(np.exp(scene))
+        if self.offset != 1.0:
+            self.offset = float(np.exp((1.0 - GAIN_OFFSET_DECAY) * np.log(self.offset)))
+            if abs(np.log(self.offset)) < 1e-4:
+                self.offset = 1.0
+        return cv2.convertScaleAbs(image, alpha=self.offset * self.target / mean)
 
 @dataclass
 class TwoViewResult:
@@ -155,6 +218,7 @@ class Frontend:
         self.static_mask = static_mask
         self.max_tan_ray_angle = float(np.tan(np.radians(cfg.max_ray_angle_deg)))
         self.clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if cfg.clahe else None
+        self.gain = GainNormalizer(cfg.gain_target) if cfg.gain_normalization else None
         self.kf_ids: np.ndarray | None = None
         self.kf_xn: np.ndarray | None = None
         self.kf_time = 0.0
@@ -179,12 +243,8 @@ class Frontend:
         image = frame.image
         if self.clahe is not None:
             image = self.clahe.apply(image)
-        elif self.cfg.gain_normalization:
-            # Cancel global exposure changes (auto-exposure steps) that break KLT's brightness
-            # constancy: scale every frame to the same mean intensity.
-            mean = float(cv2.mean(image)[0])
-            if mean > 1.0:
-                image = cv2.convertScaleAbs(image, alpha=self.cfg.gain_target / mean)
+        elif self.gain is not None:
+            image = self.gain(image)
         tracks = self.tracker.track(image, self._mask(frame))
         xn = self.camera.undistort_normalized(tracks.pixels)
         # The mask bounds the field of view to whole pixels; sub-pixel refinement and KLT can leave a
