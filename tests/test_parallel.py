@@ -13,11 +13,12 @@ from windowvo.parallel import BackendWorker
 from windowvo.synth.paths import PathKind
 
 
-@pytest.mark.parametrize("case", ["level", "rocking_tilted_mount", "tilted_mount_auto"])
+@pytest.mark.parametrize("case", ["level", "rocking_tilted_mount", "tilted_mount_auto", "monocular_floor_late"])
 def test_pipelined_equals_sequential(short_loop, seq_factory, tmp_path, case):
     """Also on a rocking base whose camera.yaml is 0.5 deg off, with the mount calibration on: the level
     frame's Python factor and the learnt floor normal are built in the worker process; and on a loop whose
-    camera.yaml is 1 deg off with the default (auto): the switch re-ties floor landmarks in the worker."""
+    camera.yaml is 1 deg off with the default (auto): the switch re-ties floor landmarks in the worker; and a
+    monocular run that sees the floor only after 2 s: the late metric start rescales the trajectory in the worker."""
     seq, backend = short_loop, {}
     if case == "rocking_tilted_mount":
         seq = seq_factory("short_rocking_tilted", path=PathKind.FIGURE_EIGHT, duration_s=12.0, seed=8,
@@ -25,6 +26,9 @@ def test_pipelined_equals_sequential(short_loop, seq_factory, tmp_path, case):
         backend = {"ground": {"mount_calibration": True}}
     if case == "tilted_mount_auto":
         seq = seq_factory("short_tilted", path=PathKind.LOOP, duration_s=12.0, seed=9, calib_pitch_error_deg=1.0)
+    if case == "monocular_floor_late":
+        seq = seq_factory("short_floor_late", path=PathKind.LOOP, duration_s=12.0, seed=10, floor_hidden_frames=40)
+        backend = {"use_odometry": False}
     reps = {}
     for mode in ("sequential", "pipelined"):
         reps[mode] = run_job(make_config(seq, tmp_path / mode, run_mode=mode, backend=backend))
@@ -38,10 +42,13 @@ def test_pipelined_equals_sequential(short_loop, seq_factory, tmp_path, case):
         b = (tmp_path / "pipelined" / name).read_text()
         assert a == b, name
     seq, pip = reps["sequential"].result, reps["pipelined"].result
-    assert (seq.n_keyframes, seq.n_resets, seq.metric, seq.scale_sources) == (
-        pip.n_keyframes, pip.n_resets, pip.metric, pip.scale_sources)
-    assert seq.wheel_calibration is not None and pip.wheel_calibration is not None
-    assert seq.wheel_calibration.scale == pip.wheel_calibration.scale
+    assert (seq.n_keyframes, seq.n_resets, seq.metric, seq.scale_sources, seq.metric_from_frame) == (
+        pip.n_keyframes, pip.n_resets, pip.metric, pip.scale_sources, pip.metric_from_frame)
+    if case == "monocular_floor_late":
+        assert pip.metric and pip.metric_from_frame is not None and pip.metric_from_frame >= 40, pip
+    else:
+        assert seq.wheel_calibration is not None and pip.wheel_calibration is not None
+        assert seq.wheel_calibration.scale == pip.wheel_calibration.scale
     # per-frame statistics agree too, apart from timings
     rows_s = (tmp_path / "sequential" / "stats.csv").read_text().splitlines()
     rows_p = (tmp_path / "pipelined" / "stats.csv").read_text().splitlines()

@@ -116,3 +116,28 @@ def test_a_calibration_error_changes_camera_yaml_only(tmp_path):
     assert (tmp_path / "true" / "groundtruth.txt").read_text() == (tmp_path / "wrong" / "groundtruth.txt").read_text()
     for a, b in zip(sorted((tmp_path / "true" / "images").iterdir()), sorted((tmp_path / "wrong" / "images").iterdir())):
         assert a.read_bytes() == b.read_bytes()
+
+
+def test_floor_hidden_frames_blank_the_view_below_the_horizon(tmp_path):
+    """floor_hidden_frames: the first N frames are one flat grey below the horizon of the base frame (for a
+    camera pitched down, a band of rows at the bottom), the rest as rendered."""
+    import cv2
+
+    from windowvo.synth.generate import camera_for, generate_sequence
+
+    kw = dict(path=PathKind.LOOP, duration_s=0.3, seed=3, width=160, height=120, fx=85.0)
+    generate_sequence(tmp_path / "plain", SynthSpec(**kw))
+    generate_sequence(tmp_path / "hidden", SynthSpec(**kw, floor_hidden_frames=2))
+    cam = camera_for(SynthSpec(**kw))
+    pitch = np.arcsin(-cam.T_base_cam[2, 2])  # optical axis below the horizontal
+    horizon_row = cam.cy - cam.fy * np.tan(pitch)
+    assert 0 < horizon_row < cam.height
+    for i in range(4):
+        plain = cv2.imread(str(tmp_path / "plain" / "images" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        hidden = cv2.imread(str(tmp_path / "hidden" / "images" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        below = hidden[int(horizon_row) + 2:]
+        if i < 2:
+            assert below.std() == 0.0 and plain[int(horizon_row) + 2:].std() > 5.0  # the floor was textured
+            assert np.array_equal(hidden[: int(horizon_row) - 1], plain[: int(horizon_row) - 1])
+        else:
+            assert np.array_equal(hidden, plain)

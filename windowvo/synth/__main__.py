@@ -72,6 +72,8 @@ def main(argv=None) -> int:
     p.add_argument("--dark-frames", default="", help="index ranges 'a,b;c,d'")
     p.add_argument("--blur-frames", default="", help="index ranges 'a,b;c,d'")
     p.add_argument("--low-contrast-frames", default="", help="index ranges 'a,b;c,d' (texture washed out)")
+    p.add_argument("--floor-hidden-frames", type=int, default=0,
+                   help="the first N frames show nothing below the horizon (a start with no floor in view)")
     a = p.parse_args(argv)
     try:
         lens = lens_fields(LensPreset(a.lens))
@@ -93,7 +95,7 @@ def main(argv=None) -> int:
             black_frames=_ints(a.black_frames), duplicate_frames=_ints(a.duplicate_frames),
             dropped_frames=_ints(a.dropped_frames), corrupt_frames=_ints(a.corrupt_frames),
             dark_frames=_pairs(a.dark_frames), blur_frames=_pairs(a.blur_frames),
-            low_contrast_frames=_pairs(a.low_contrast_frames),
+            low_contrast_frames=_pairs(a.low_contrast_frames), floor_hidden_frames=a.floor_hidden_frames,
         )
         t0 = time.perf_counter()
         generate_sequence(a.out, spec, progress=True)

@@ -96,6 +96,9 @@ class SynthSpec:
     dark_frames: list[tuple[int, int]] = field(default_factory=list)  # index ranges with gain 0.15
     blur_frames: list[tuple[int, int]] = field(default_factory=list)  # motion-blurred index ranges
     low_contrast_frames: list[tuple[int, int]] = field(default_factory=list)  # texture washed out (x0.08)
+    # The first N frames show nothing below the horizon of the base frame (one flat grey): a run that starts
+    # with no floor in view (a wall, a person in front of the camera).
+    floor_hidden_frames: int = 0
     write_images: bool = True
 
 
@@ -226,6 +229,13 @@ def frame_gain(spec: SynthSpec, i: int, rng: np.random.Generator) -> float:
     return g
 
 
+def below_horizon(cam: CameraModel) -> np.ndarray:
+    """Pixels whose ray points below the horizon of the base frame, (h, w) bool."""
+    rays = cam.pixel_bearings() @ cam.T_base_cam[:3, :3].T
+    with np.errstate(invalid="ignore"):
+        return (rays[:, 2] < 0.0).reshape(cam.height, cam.width)
+
+
 def generate_sequence(out: Path, spec: SynthSpec, progress: bool = False) -> SyntheticWorld:
     out = Path(out)
     world = build_world(spec)  # validates the camera before anything is written
@@ -236,6 +246,7 @@ def generate_sequence(out: Path, spec: SynthSpec, progress: bool = False) -> Syn
     times_all = np.arange(n) / spec.fps
     keep = [i for i in range(n) if i not in set(spec.dropped_frames)]
     rng = np.random.default_rng(spec.seed + 1)
+    hidden = below_horizon(cam) if spec.floor_hidden_frames > 0 else None
     gt_poses = []
     written = 0
     last_img = None
@@ -265,6 +276,8 @@ def generate_sequence(out: Path, spec: SynthSpec, progress: bool = False) -> Syn
         if spec.image_noise > 0:
             img = img + rng.normal(0, spec.image_noise, img.shape).astype(np.float32)
         img8 = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+        if hidden is not None and i < spec.floor_hidden_frames:
+            img8[hidden] = int(img8[~hidden].mean())
         if i in spec.black_frames:
             img8 = np.zeros_like(img8)
         cv2.imwrite(str(name), img8, [cv2.IMWRITE_PNG_COMPRESSION, 1])
