@@ -141,3 +141,16 @@ def test_floor_hidden_frames_blank_the_view_below_the_horizon(tmp_path):
             assert np.array_equal(hidden[: int(horizon_row) - 1], plain[: int(horizon_row) - 1])
         else:
             assert np.array_equal(hidden, plain)
+
+
+@pytest.mark.parametrize("args,message", [(["--floor-hidden-frames", "-3"], "floor_hidden_frames must be 0 or more"),
+                                          (["--duration", "-1"], "duration and fps must be positive")])
+def test_synth_command_line_bad_values_are_one_line(tmp_path, args, message):
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-m", "windowvo.synth", str(tmp_path / "out"), *args],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2
+    assert p.stderr.strip().splitlines() == [f"windowvo: error: {p.stderr.split('error: ', 1)[1].strip()}"]
+    assert message in p.stderr and "Traceback" not in p.stderr

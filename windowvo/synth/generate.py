@@ -101,6 +101,12 @@ class SynthSpec:
     floor_hidden_frames: int = 0
     write_images: bool = True
 
+    def __post_init__(self) -> None:
+        if not self.duration_s > 0 or not self.fps > 0:
+            raise ValueError(f"duration and fps must be positive (got {self.duration_s} s at {self.fps} fps)")
+        if self.floor_hidden_frames < 0:
+            raise ValueError(f"floor_hidden_frames must be 0 or more (got {self.floor_hidden_frames})")
+
 
 @dataclass
 class SyntheticWorld:
