@@ -207,4 +207,6 @@ def test_monocular_run_becomes_metric_when_the_floor_comes_into_view(seq_factory
           f"Sim3 {a['ate_sim3_rmse_m']:.4f} (scale {a['sim3_scale']:.4f}) over {a['path_length_m']:.1f} m")
     assert r.monocular and r.metric and r.metric_from_frame is not None and r.metric_from_frame >= hidden
     assert summary["metric"] and summary["metric_from_frame"] == r.metric_from_frame
+    notes = {int(row.split(",")[0]): row for row in (tmp_path / "out" / "stats.csv").read_text().splitlines()[1:]}
+    assert "metric from here" in notes[r.metric_from_frame]  # stats.csv (and the recording's log) say where
     assert a["ate_se3_rmse_m"] <= 0.01 * a["path_length_m"], a  # the bound for a monocular metric run

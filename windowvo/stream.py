@@ -163,6 +163,8 @@ class Odometry:
             self.kf_pose_by_frame.update(bo.keyframe_poses)
             if bo.status is BackendStatus.RECOVERED:
                 note = (note + "; " if note else "") + "backend reset"
+            if bo.metric_start:
+                note = (note + "; " if note else "") + "metric from here (the floor came into view; trajectory so far rescaled)"
         T = np.eye(4) if self.last_kf_online is None or tr.wheel_delta is None else self.last_kf_online @ tr.wheel_delta
         self.frames.append((tr.index, tr.timestamp))
         self.online.append(T)

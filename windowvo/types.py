@@ -135,6 +135,7 @@ class BackendOutput:
     # Keyframes before the window whose poses this update changed (frame index -> T_world_base): every one at a
     # monocular run's late metric start, when the floor first came into view and the trajectory was rescaled.
     earlier_keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    metric_start: bool = False  # this keyframe made a monocular run metric (the floor came into view)
 
 
 @dataclass

@@ -215,7 +215,7 @@ class SlidingWindowBackend:
         allow_new = fo.gate in (GateOutcome.PASS, GateOutcome.LOW_PARALLAX) or k == 1
         T_guess = self._initial_guess(fo, odom)
         n_new = n_vis = n_ground = 0
-        earlier: dict[int, np.ndarray] = {}
+        earlier: dict[int, np.ndarray] | None = None
         try:
             n_new, n_vis, n_ground = self._update(fo, odom, T_guess, fo.vision_ok, allow_new)
             if k == 0:
@@ -231,7 +231,8 @@ class SlidingWindowBackend:
             self._reset_with(fo, odom, T_guess)
             status = BackendStatus.RECOVERED
         out = self._output(fo, n_new, n_vis, n_ground, status)
-        out.earlier_keyframe_poses = earlier
+        if earlier is not None:
+            out.metric_start, out.earlier_keyframe_poses = True, earlier
         out.backend_ms = (time.perf_counter() - t0) * 1000.0
         return out
 
@@ -494,16 +495,16 @@ class SlidingWindowBackend:
             height = fit.camera_height_m
         return self.camera_height_m / height
 
-    def _late_metric_start(self, fo: FrontendOutput) -> dict[int, np.ndarray]:
+    def _late_metric_start(self, fo: FrontendOutput) -> dict[int, np.ndarray] | None:
         """A monocular run with no floor in its first two keyframes is up to scale until the floor comes into
         view. When two consecutive keyframes' floor planes agree on the scale, every keyframe pose is
         rescaled about the first camera centre, the window restarts from this keyframe (metric now, so the
         ground factors hold the scale from here on), and the run is metric. Returns the rescaled poses of the
-        keyframes before the window (the window's go out as usual), else {}."""
+        keyframes before the window (the window's go out as usual), or None when the run stays up to scale."""
         scale = self._floor_scale_now()
         prev, self._late_scale = self._late_scale, scale
         if scale is None or prev is None or abs(scale / prev - 1.0) > LATE_START_AGREEMENT:
-            return {}
+            return None
         s = float(np.sqrt(scale * prev))
         c0 = (self.kf_pose[0] @ self.T_base_cam)[:3, 3]
         base_from_cam = inv_T(self.T_base_cam)
