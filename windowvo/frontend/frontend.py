@@ -91,6 +91,7 @@ class GainNormalizer:
                 self.offset = 1.0
         return cv2.convertScaleAbs(image, alpha=self.offset * self.target / mean)
 
+
 @dataclass
 class TwoViewResult:
     inlier_mask: np.ndarray  # (N,) bool, over the common tracks
