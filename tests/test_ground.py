@@ -361,3 +361,18 @@ def test_levelled_mount_undoes_a_pitched_calibration():
     assert np.allclose(T_fixed[:3, 3], T_true[:3, 3])
     assert np.allclose(levelled_mount(T_true, [0.0, 0.0, 1.0]), T_true)  # a level floor changes nothing
 
+
+
+def test_camera_height_up_to_scale_is_in_the_points_unit():
+    """Floor points around the camera centre, in an arbitrary unit (the camera 2.7 units above the floor):
+    the height comes back in that unit, with and without the refining second fit; no floor, None."""
+    from windowvo.backend.ground import camera_height_up_to_scale
+
+    rng = np.random.default_rng(3)
+    xy = np.column_stack([rng.uniform(3.0, 25.0, 200), rng.uniform(-6.0, 6.0, 200)])
+    floor = np.column_stack([xy, np.full(200, -2.7) + rng.normal(0.0, 0.01, 200)])
+    for refine in (False, True):
+        h = camera_height_up_to_scale(floor, GroundConfig(), np.random.default_rng(0), refine=refine)
+        assert h == pytest.approx(2.7, rel=0.01)
+    wall = np.column_stack([np.full(200, 8.0), xy[:, 1], rng.uniform(-2.0, 2.0, 200)])
+    assert camera_height_up_to_scale(wall, GroundConfig(), np.random.default_rng(0)) is None

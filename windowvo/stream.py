@@ -162,9 +162,9 @@ class Odometry:
             self.kf_pose_by_frame.update(bo.earlier_keyframe_poses)
             self.kf_pose_by_frame.update(bo.keyframe_poses)
             if bo.status is BackendStatus.RECOVERED:
-                note = (note + "; " if note else "") + "backend reset"
+                note = _join_notes(note, "backend reset")
             if bo.metric_start:
-                note = (note + "; " if note else "") + "metric from here (the floor came into view; trajectory so far rescaled)"
+                note = _join_notes(note, "metric from here (the floor came into view; trajectory so far rescaled)")
         T = np.eye(4) if self.last_kf_online is None or tr.wheel_delta is None else self.last_kf_online @ tr.wheel_delta
         self.frames.append((tr.index, tr.timestamp))
         self.online.append(T)
@@ -249,6 +249,10 @@ class Odometry:
     @property
     def n_resets(self) -> int:
         return int(self.remote_report["n_resets"]) if self.remote_report is not None else self.backend.n_resets
+
+
+def _join_notes(note: str, more: str) -> str:
+    return f"{note}; {more}" if note else more
 
 
 def backend_scale_report(be: SlidingWindowBackend) -> dict:

@@ -145,6 +145,23 @@ def floor_mask(p_world: np.ndarray, T_world_base: np.ndarray, T_base_cam: np.nda
     return mask, fit
 
 
+def camera_height_up_to_scale(p_cam: np.ndarray, cfg: GroundConfig, rng: np.random.Generator,
+                              refine: bool = False) -> float | None:
+    """The camera's height above the floor plane under points given around the camera centre (base
+    orientation), in the points' own unit: a monocular run's scale is ``camera height / this``. None: no
+    floor plane passes. The camera's offset inside the base is metric while such points are not, hence
+    the camera-centred frame. ``refine``: a second fit measures ranges in camera heights of the first."""
+    height = 1.0
+    origin = np.zeros(3)
+    for _ in range(2 if refine else 1):
+        cand = floor_candidates(p_cam, origin, height, cfg)
+        fit = fit_floor_plane(p_cam[cand], origin, height, cfg, rng, metric_scale_known=False)
+        if fit is None or fit.camera_height_m <= 1e-6:
+            return None
+        height = fit.camera_height_m
+    return height
+
+
 def attitude_jitter_deg(z_axes: np.ndarray) -> float:
     """Median angle (deg) between the z axes of consecutive keyframes' bases, (N, 3) in order.
 

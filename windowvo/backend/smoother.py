@@ -56,8 +56,7 @@ from .ground import (
     FloorAttitude,
     PlaneFit,
     attitude_jitter_deg,
-    fit_floor_plane,
-    floor_candidates,
+    camera_height_up_to_scale,
     floor_mask,
     level_up,
 )
@@ -289,15 +288,9 @@ class SlidingWindowBackend:
                     pts.append(p)
         if len(pts) < self.cfg.ground.min_points:
             return None
-        # The camera's offset inside the base is metric while the points are in baseline units: fit
-        # the plane around the camera centre instead (a rotation-only base frame at the camera).
-        cam_c = self.T_base_cam[:3, 3]
-        shifted = np.asarray(pts) - cam_c
-        cand = floor_candidates(shifted, np.zeros(3), 1.0, self.cfg.ground)
-        fit = fit_floor_plane(shifted[cand], np.zeros(3), 1.0, self.cfg.ground, self._rng, metric_scale_known=False)
-        if fit is None or fit.camera_height_m <= 1e-6:
-            return None
-        return self.camera_height_m / fit.camera_height_m
+        # Keyframe 0's base is the world: around the camera centre, the points are in the base's orientation.
+        height = camera_height_up_to_scale(np.asarray(pts) - self.T_base_cam[:3, 3], self.cfg.ground, self._rng)
+        return None if height is None else self.camera_height_m / height
 
     def _motion_factors(self, graph, values, stamps, k: int, odom: OdometryStep | None, T_guess) -> None:
         """First-pose prior, wheel factors (through the calibration state) or a monocular motion prior."""
@@ -425,6 +418,7 @@ class SlidingWindowBackend:
         on_floor, floor_fit = self._floor_of(born, T_guess)
         born, on_floor = self._within_budget(born, on_floor, budgets)
         up_world = self._level_up(T_guess, floor_fit if on_floor.any() else None)
+        n_base = self.floor_normal_base()  # the same for all of this keyframe's floor points
         cam_center = (T_guess @ self.T_base_cam)[:3, 3]
         new_lms: list[int] = []
         n_vis = n_ground = 0
@@ -441,18 +435,17 @@ class SlidingWindowBackend:
                     owners.append((tid, kk, False))
                     n_vis += 1
             if floor and not self._waiting_for_floor():
-                graph.add(self._birth_ground_factor(key, p, T_guess, up_world))
+                graph.add(self._birth_ground_factor(key, p, T_guess, up_world, n_base))
                 owners.append((tid, k, up_world is None))
                 n_ground += 1
             new_lms.append(tid)
         return new_lms, n_vis, n_ground
 
     def _birth_ground_factor(self, key: int, p_world: np.ndarray, T_guess: np.ndarray,
-                             up_world: np.ndarray | None):
+                             up_world: np.ndarray | None, n_base: np.ndarray | None):
         """A new floor landmark's ground factor at its birth keyframe: along the base's z axis (or the
-        learnt floor normal) natively, or along the level frame's up when the base rocks."""
+        learnt floor normal ``n_base``) natively, or along the level frame's up when the base rocks."""
         k, cfg = self.k, self.cfg
-        n_base = self.floor_normal_base()  # the same for all of this keyframe's floor points
         self.floor_normal_learnt = n_base is not None
         if up_world is not None:
             self.n_level_ground_factors += 1
@@ -481,19 +474,12 @@ class SlidingWindowBackend:
     # ------------------------------------------------------------------ late metric start (monocular)
     def _floor_scale_now(self) -> float | None:
         """Up to scale: the factor that would put the floor plane under the window's landmarks at the camera's
-        known height (None: no floor plane in view). Fitted around the camera centre, in the base's
-        orientation, as at the monocular start; a second pass measures ranges in the first fit's heights."""
+        known height (None: no floor plane in view), as at the monocular start, with a refining second fit."""
         _, pts = self.lm.positions()
         T_wb = self.kf_pose[self.k]
         rel = (pts - (T_wb @ self.T_base_cam)[:3, 3]) @ T_wb[:3, :3]
-        height = 1.0
-        for _ in range(2):
-            cand = floor_candidates(rel, np.zeros(3), height, self.cfg.ground)
-            fit = fit_floor_plane(rel[cand], np.zeros(3), height, self.cfg.ground, self._rng, metric_scale_known=False)
-            if fit is None or fit.camera_height_m <= 1e-9:
-                return None
-            height = fit.camera_height_m
-        return self.camera_height_m / height
+        height = camera_height_up_to_scale(rel, self.cfg.ground, self._rng, refine=True)
+        return None if height is None else self.camera_height_m / height
 
     def _late_metric_start(self, fo: FrontendOutput) -> dict[int, np.ndarray] | None:
         """A monocular run with no floor in its first two keyframes is up to scale until the floor comes into

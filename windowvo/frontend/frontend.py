@@ -10,6 +10,9 @@ pinhole coordinates (and at 90 degrees or more, a fisheye's, to none), so the im
 beyond ``frontend.max_ray_angle_deg`` is masked out: no detections there, and tracks that
 move into it end. Each observation carries ``pixel_sigma_scale``, how much the undistortion
 stretches one pixel of image noise at that point.
+
+Exposure: every frame is scaled to one mean grey level before tracking (``GainNormalizer``), except
+across a change in part of the view, which keeps the grey levels elsewhere (and their tracks).
 """
 
 from __future__ import annotations
