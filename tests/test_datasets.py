@@ -269,13 +269,17 @@ def test_kitti_with_synthetic_wheels(tmp_path, name):
 
 
 @pytest.mark.parametrize("name", KITTI)
-def test_kitti_monocular_shape_is_bounded(tmp_path, name):
+def test_kitti_monocular_is_metric(tmp_path, name):
+    """No wheels: the road at camera 0's known height (1.65 m) makes the run metric (the metric-scale issue's
+    bound: SE(3) ATE <= 2% of the distance). Measured when written: 0.78 m over 60 m (06), 0.34 m over 52 m
+    (01); before, both stayed up to scale (their first keyframes see no road; 2.85 m and 1.93 m)."""
     root = SHARED_DATA / name
     if not root.is_dir():
         pytest.skip(f"{root} not present")
     rep = run_job(make_config(root, tmp_path / "out", dataset="kitti"))
     assert rep.result.monocular
-    print(f"{name}: monocular ATE Sim(3) {rep.accuracy.ate_sim3_rmse_m:.3f} m over {rep.accuracy.path_length_m:.1f} m")
-    # monocular scale drifts without loop closure; this bounds the shape error (measured: about
-    # 6% of the path on kitti06 and 1% on kitti01 at the time of writing)
-    assert rep.accuracy.ate_sim3_rmse_m < 0.10 * rep.accuracy.path_length_m
+    acc = rep.accuracy
+    print(f"{name}: monocular ATE SE(3) {acc.ate_se3_rmse_m:.3f} m, Sim(3) {acc.ate_sim3_rmse_m:.3f} m (scale "
+          f"{acc.sim3_scale:.3f}) over {acc.path_length_m:.1f} m, metric from frame {rep.result.metric_from_frame}")
+    assert rep.result.scale_sources == ["ground plane (camera height)"]
+    assert acc.ate_se3_rmse_m <= 0.02 * acc.path_length_m

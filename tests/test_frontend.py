@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from windowvo.camera import CameraModel
-from windowvo.config import FrontendConfig, GateConfig, KeyframeConfig
+from windowvo.config import DetectionOrder, FrontendConfig, GateConfig, KeyframeConfig
 from windowvo.frontend.frontend import Frontend, two_view_geometry
-from windowvo.frontend.tracker import KLTTracker, ORBTracker, cell_counts
+from windowvo.frontend.tracker import KLTTracker, ORBTracker, cell_counts, grid_select, resolve_detection_order
 from windowvo.geometry import inv_T, rotation_angle
 from windowvo.synth.generate import LensPreset, SynthSpec, build_world, lens_fields
 from windowvo.synth.paths import PathKind
@@ -279,6 +279,26 @@ def test_grid_cell_counts_and_spread():
     fe = Frontend(cam, FrontendConfig(), KeyframeConfig(), GateConfig())
     assert fe.spread(px) == 3 / 48
     assert fe.spread(np.zeros((0, 2))) == 0.0
+
+
+def test_detection_order_rows_fills_the_top_spread_reaches_the_floor():
+    """A budget short of the cells' room: ``rows`` spends it on the upper cells (the road below the horizon
+    gets nothing), ``spread`` gives every cell one corner per round, the bottom rows first."""
+    # 2 x 3 cells of 100 x 100 px, four candidates per cell, best first within a cell, top row first
+    cells = [(r, c) for r in range(3) for c in range(2)]
+    cand = np.array([[100 * c + 10 + 20 * i, 100 * r + 50] for r, c in cells for i in range(4)], float)
+    rows_sel = grid_select(cand, np.zeros((0, 2)), (300, 200), 2, 3, 8, 4, DetectionOrder.ROWS)
+    assert (cand[rows_sel][:, 1] < 100).all()  # all in the top row: the rows below (the road) get none
+    spread_sel = grid_select(cand, np.zeros((0, 2)), (300, 200), 2, 3, 8, 4, DetectionOrder.SPREAD)
+    # one per cell (the best of each), then a second round from the bottom row up
+    assert spread_sel[:6].tolist() == [16, 20, 8, 12, 0, 4]
+    assert spread_sel[6:].tolist() == [17, 21]
+    # cells already full take nothing, in either order
+    full = np.repeat([[150.0, 250.0]], 4, axis=0)
+    assert not np.isin(grid_select(cand, full, (300, 200), 2, 3, 30, 4, DetectionOrder.SPREAD), range(20, 24)).any()
+    assert resolve_detection_order(DetectionOrder.AUTO, floor_only_scale=True) is DetectionOrder.SPREAD
+    assert resolve_detection_order(DetectionOrder.AUTO, floor_only_scale=False) is DetectionOrder.ROWS
+    assert resolve_detection_order(DetectionOrder.ROWS, floor_only_scale=True) is DetectionOrder.ROWS
 
 
 def test_losing_every_track_at_once_makes_a_keyframe(world):

@@ -21,7 +21,7 @@ from windowvo.backend.smoother import SlidingWindowBackend, WheelCalibration
 from windowvo.config import BackendConfig, GroundConfig
 from windowvo.geometry import make_T, rot_x, rotation_angle, rpy_to_R
 from windowvo.synth.features import simulate_features
-from windowvo.synth.generate import SynthSpec, WheelErrorModel
+from windowvo.synth.generate import SynthSpec, WheelErrorModel, camera_for
 from windowvo.synth.paths import PathKind
 from windowvo.types import OdometryStep
 
@@ -309,6 +309,39 @@ def test_floor_points_at_the_base_origin_are_not_candidates():
     assert mask.tolist() == [False, False, True, True]
     for p in pts[mask]:
         fac.ground_factor(X(1), L(7), p, 0.0, 0.0135, BackendConfig())  # no error
+
+
+def _drifted_floor_of(be: SlidingWindowBackend, scale: float, rng: np.random.Generator):
+    """``_floor_of`` for new landmarks on the floor, a wall and a box, seen at ``scale`` x their true
+    distances from the camera (the estimate's scale drifted), with no landmarks in the window."""
+    cam = be.T_base_cam[:3, 3]
+    floor, pts = _scene_points(rng)
+    born = [(i, cam + scale * (p - cam)) for i, p in enumerate(pts)]
+    mask, fit = be._floor_of(born, np.eye(4))
+    return mask, fit, len(floor)
+
+
+@pytest.mark.parametrize("use_odometry", [False, True])
+def test_a_monocular_run_takes_the_floor_back_after_its_scale_drifted(use_odometry):
+    """Without wheels the floor is the only scale source: a floor plane at the same wrong height at two
+    consecutive keyframes is the floor seen at a drifted scale, and is taken back (its ground factors then
+    pull the scale back); two planes that disagree are not (one could be a table top). With wheels the
+    scale is theirs: a plane at the wrong height is never floor."""
+    spec = SynthSpec(path=PathKind.LOOP, duration_s=2.0, seed=1)
+    be = SlidingWindowBackend(camera_for(spec), BackendConfig(), use_odometry=use_odometry)
+    be.metric = True  # as after the monocular start
+    rng = np.random.default_rng(3)
+    mask, fit, n_floor = _drifted_floor_of(be, 1.0, rng)  # the right scale: the floor, either way
+    assert fit is not None and mask[:n_floor].mean() > 0.5 and not mask[n_floor:].any()
+    for scale, taken in ((0.65, False), (1.9, False), (1.9, not use_odometry), (1.85, not use_odometry)):
+        mask, fit, n_floor = _drifted_floor_of(be, scale, rng)
+        assert (fit is not None) == taken, scale
+        if taken:
+            assert fit.camera_height_m == pytest.approx(scale * 0.45, rel=0.05)
+            assert mask[:n_floor].mean() > 0.5 and not mask[n_floor:].any()
+        else:
+            assert not mask.any()
+    assert be.n_scale_reanchors == (0 if use_odometry else 2)
 
 
 def test_wheel_calibration_correct_removes_scale_and_bias():

@@ -36,6 +36,14 @@ class TrackerKind(str, enum.Enum):
     ORB = "orb"
 
 
+class DetectionOrder(str, enum.Enum):
+    """Which grid cells new corners go to first when the detection budget is short."""
+
+    AUTO = "auto"  # spread when the floor is the run's only scale source (no wheel odometry), rows otherwise
+    ROWS = "rows"  # cell after cell, top row first: the floor's rows get what is left
+    SPREAD = "spread"  # one corner per cell and round, bottom rows first: the floor's rows get their share
+
+
 class RobustKind(str, enum.Enum):
     HUBER = "huber"
     CAUCHY = "cauchy"  # redescending: gross outliers (wheel slip) lose almost all weight
@@ -92,6 +100,11 @@ class FrontendConfig(_Section):
     mask_folder: Path | None = Field(None, description="per-frame masks with the images' file names (white = allowed); "
                                                        "relative to the config file")
     border_px: int = Field(8, ge=0, description="no corners closer than this to the image border")
+    detection_order: DetectionOrder = Field(DetectionOrder.AUTO, description="where new corners go first when the "
+                                            "budget is short: rows (cell after cell, top row first), spread (one "
+                                            "per cell and round, bottom rows first: the floor gets its share), "
+                                            "auto (spread without wheel odometry, where the floor is the only "
+                                            "scale source; rows otherwise)")
 
 
 class KeyframeConfig(_Section):

@@ -31,6 +31,7 @@ from .camera import CameraModel
 from .config import Config, config_from_dict, load_config
 from .errors import WindowVOError
 from .frontend.frontend import Frontend
+from .frontend.tracker import resolve_detection_order
 from .geometry import interpolate_T
 from .io.odometry import WheelBuffer, WheelOdometry
 from .io.trajectory import Trajectory
@@ -70,8 +71,11 @@ class Odometry:
         self.cfg = cfg
         self.camera = camera
         self.use_odometry = bool(use_wheels and cfg.backend.use_odometry)
-        self.frontend = Frontend(camera, cfg.frontend, cfg.keyframes, cfg.gates, static_mask)
         self.backend = SlidingWindowBackend(camera, cfg.backend, self.use_odometry)
+        floor_only = self.backend.use_ground and not self.use_odometry  # the floor is the only scale source
+        order = resolve_detection_order(cfg.frontend.detection_order, floor_only)
+        self.frontend = Frontend(camera, cfg.frontend.model_copy(update={"detection_order": order}), cfg.keyframes,
+                                 cfg.gates, static_mask)
         self.wheels = WheelBuffer(extrapolate_s=cfg.backend.odometry.max_gap_s, comment=wheel_comment)
         self.frames: list[tuple[int, float]] = []  # (frame index, timestamp) of every frame, skipped ones too
         self.online: list[np.ndarray] = []  # causal T_world_base per frame

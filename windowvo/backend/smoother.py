@@ -140,6 +140,10 @@ class SlidingWindowBackend:
         self.metric = use_odometry
         self.metric_from_keyframe: int | None = None  # a late metric start: the keyframe it happened at
         self._late_scale: float | None = None  # the last keyframe's floor scale while waiting for one
+        # Monocular, metric: the height of the last keyframe's floor plane at a drifted scale (None: the metric
+        # fit passed or no plane), and how often the floor was taken back at one (``_floor_after_scale_drift``).
+        self._drift_height: float | None = None
+        self.n_scale_reanchors = 0
         self.n_ground_factors = 0
         self.n_level_ground_factors = 0  # of them, measured along the floor's normal (the base rocks)
         self.base_rocking_deg = float("nan")  # attitude_jitter_deg over the window at the last floor fit
@@ -599,6 +603,10 @@ class SlidingWindowBackend:
         old_pts = self.lm.positions()[1]
         pts = np.concatenate([new_pts, old_pts])
         mask, fit = floor_mask(pts, T_guess, self.T_base_cam, self.camera_height_m, self.cfg.ground, self._rng)
+        if fit is None and not self.use_odometry:
+            mask, fit = self._floor_after_scale_drift(pts, T_guess)
+        else:
+            self._drift_height = None
         fa = self.floor_attitude
         if fit is not None:
             fa.add(fit.normal)
@@ -608,6 +616,24 @@ class SlidingWindowBackend:
                 # the calibration's slow random walk then carries for the rest of the run.
                 return np.zeros(len(born), bool), fit
         return mask[: len(born)], fit
+
+    def _floor_after_scale_drift(self, pts: np.ndarray, T_guess: np.ndarray) -> tuple[np.ndarray, PlaneFit | None]:
+        """The floor of a monocular run whose scale drifted (no wheels: the floor is its only scale source).
+
+        While no floor is in view the scale drifts like any monocular run's (KITTI 01 on the highway: 35%
+        in 7 keyframes without floor tracks); when the floor is back, it lies at a height the metric fit
+        rejects (``height_tolerance``), and the run would stay drifted. A plane found at the same height at
+        two consecutive keyframes (within ``LATE_START_AGREEMENT``, as at the late metric start: one plane
+        could be a table top) is taken as the floor again: its ground factors pull the scale back."""
+        mask, fit = floor_mask(pts, T_guess, self.T_base_cam, self.camera_height_m, self.cfg.ground, self._rng,
+                               metric_scale_known=False)
+        prev, self._drift_height = self._drift_height, (None if fit is None else fit.camera_height_m)
+        if fit is None or prev is None or abs(fit.camera_height_m / prev - 1.0) > LATE_START_AGREEMENT:
+            return np.zeros(len(pts), bool), None
+        self.n_scale_reanchors += 1
+        log.info("keyframe %d: the floor is back %.2f of the camera height away (the scale drifted while it was "
+                 "out of view); tied to it again", self.k, fit.camera_height_m / self.camera_height_m)
+        return mask, fit
 
     def floor_offset(self, n_base: np.ndarray | None) -> float:
         """The floor as the plane ``n_base . q = offset`` in the base frame: the camera at its known height
@@ -660,9 +686,10 @@ class SlidingWindowBackend:
             return
         self.mount_normal_used = self._release_scale = self._retie_floor = True
         tx, ty = self.floor_attitude.tilt_deg()
+        released = ", and the wheel calibration's scale is released" if self.calibrate else ""
         log.warning("keyframe %d: the floor is tilted %.2f deg in the base frame (T_base_cam's pitch or roll looks "
-                    "off by that): floor heights are measured along the learnt normal from here on, and the wheel "
-                    "calibration's scale is released", self.k, float(np.hypot(tx, ty)))
+                    "off by that): floor heights are measured along the learnt normal from here on%s", self.k,
+                    float(np.hypot(tx, ty)), released)
 
     def _level_up(self, T_guess: np.ndarray, fit: PlaneFit | None) -> np.ndarray | None:
         """The floor's normal (world) to measure this keyframe's floor points along when the base rocks,
