@@ -1,5 +1,6 @@
 """Dataset loaders on small fixtures written in their real layouts, and KITTI regression."""
 
+import json
 import logging
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import pytest
 import yaml
 from conftest import SHARED_DATA, make_config
 
-from windowvo.app import run_job
+from windowvo.app import run_and_report, run_job
 from windowvo.config import config_from_dict, load_config
 from windowvo.errors import CalibrationError, SequenceError
 from windowvo.eval.baselines import essential_chaining
@@ -276,10 +277,12 @@ def test_kitti_monocular_is_metric(tmp_path, name):
     root = SHARED_DATA / name
     if not root.is_dir():
         pytest.skip(f"{root} not present")
-    rep = run_job(make_config(root, tmp_path / "out", dataset="kitti"))
-    assert rep.result.monocular
-    acc = rep.accuracy
-    print(f"{name}: monocular ATE SE(3) {acc.ate_se3_rmse_m:.3f} m, Sim(3) {acc.ate_sim3_rmse_m:.3f} m (scale "
-          f"{acc.sim3_scale:.3f}) over {acc.path_length_m:.1f} m, metric from frame {rep.result.metric_from_frame}")
-    assert rep.result.scale_sources == ["ground plane (camera height)"]
-    assert acc.ate_se3_rmse_m <= 0.02 * acc.path_length_m
+    r = run_and_report(make_config(root, tmp_path / "out", dataset="kitti"))
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    acc = summary["accuracy"]
+    print(f"{name}: monocular ATE SE(3) {acc['ate_se3_rmse_m']:.3f} m, Sim(3) {acc['ate_sim3_rmse_m']:.3f} m over "
+          f"{acc['path_length_m']:.1f} m, metric from frame {r.metric_from_frame}, the floor taken back after a "
+          f"scale drift at {r.floor_scale_reanchors} keyframes")
+    assert r.monocular and r.metric and r.scale_sources == ["ground plane (camera height)"]
+    assert summary["metric"] and summary["floor_scale_reanchors"] == r.floor_scale_reanchors
+    assert acc["ate_se3_rmse_m"] <= 0.02 * acc["path_length_m"]

@@ -186,6 +186,7 @@ def run_and_report(cfg: Config) -> RunResult:
         "metric": r.metric,
         "scale_sources": r.scale_sources,
         "metric_from_frame": r.metric_from_frame,
+        "floor_scale_reanchors": r.floor_scale_reanchors,
         "wheel_calibration": None if r.wheel_calibration is None else {
             "scale": round(r.wheel_calibration.scale, 5), "scale_sigma": round(r.wheel_calibration.scale_sigma, 5),
             "yaw_bias_per_m": round(r.wheel_calibration.yaw_bias_per_m, 6),
@@ -208,7 +209,9 @@ def run_and_report(cfg: Config) -> RunResult:
         synthetic = " (wheels synthetic, see odometry.csv header)" if summary["odometry_synthetic"] else ""
         late = (f", from frame {r.metric_from_frame} on (the floor came into view there; the trajectory before it "
                 f"is rescaled)" if r.metric_from_frame is not None else "")
-        lines.append("metric scale from: " + ", ".join(r.scale_sources) + synthetic + late)
+        n_re = r.floor_scale_reanchors
+        drift = f"; the floor taken back after a scale drift at {n_re} keyframe{'s' * (n_re != 1)}" if n_re else ""
+        lines.append("metric scale from: " + ", ".join(r.scale_sources) + synthetic + late + drift)
     if r.wheel_calibration is not None:
         c = r.wheel_calibration
         lines.append(f"wheel calibration: scale {c.scale:.4f} ± {c.scale_sigma:.4f}, "

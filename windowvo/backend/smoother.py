@@ -631,8 +631,8 @@ class SlidingWindowBackend:
         if fit is None or prev is None or abs(fit.camera_height_m / prev - 1.0) > LATE_START_AGREEMENT:
             return np.zeros(len(pts), bool), None
         self.n_scale_reanchors += 1
-        log.info("keyframe %d: the floor is back %.2f of the camera height away (the scale drifted while it was "
-                 "out of view); tied to it again", self.k, fit.camera_height_m / self.camera_height_m)
+        log.info("keyframe %d: the floor is back, %.2f x the camera height below the camera (the scale drifted "
+                 "while it was out of view); tied to it again", self.k, fit.camera_height_m / self.camera_height_m)
         return mask, fit
 
     def floor_offset(self, n_base: np.ndarray | None) -> float:
