@@ -96,6 +96,26 @@ def test_sequences_table_columns():
     assert "+2% scale error: kitti06_000-050_wheels+2pct" in caption
 
 
+def test_sequences_table_monocular_row():
+    """A run without wheels: no wheel or chaining baseline (blank), "no wheels" for the scale error, named in
+    the caption; the run without the cue is up to scale (its SE(3) ATE blank)."""
+    mono = {**_row("kitti01_000-050_monocular", "kitti", 0.0), "wheel_scale_error": None, "wheel": {},
+            "chaining": {}, "chaining_fps": float("nan"), "scale": {"wheel_calibration": None},
+            "no_ground_cue": {"backend_ms_median": 10.0, "windowvo": {"ate_se3_m": float("nan"), "ate_sim3_m": 0.3}}}
+    rows = [_row("loop", "synth", 0.01), mono]
+    lines = bench.sequences_table(rows).splitlines()
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    cells = [dict(zip(header, (c.strip() for c in ln.strip("|").split("|")), strict=True)) for ln in lines[5:]]
+    vo, wheel, chain = cells
+    assert vo["wheel scale error: true / estimated"] == "no wheels" and vo["ATE SE(3) m"] == "0.111"
+    assert vo["ATE SE(3) without ground cue m"] == ""
+    assert wheel["ATE SE(3) m"] == "" and chain["ATE SE(3) m"] == "" and chain["fps"] == ""
+    caption = bench.sequences_caption(rows)
+    assert "no wheels (monocular, the floor at the camera height is the only scale source): " \
+           "kitti01_000-050_monocular" in caption
+    assert "rendered wheels with a +1% scale error: loop" in caption
+
+
 def test_bench_rendered_cases_include_unknown_wheel_scale_errors():
     errors = {c.name: c.wheel_scale_error for c in bench.synthetic_cases(30.0)}
     assert errors["loop_wheels+2pct"] == pytest.approx(0.02)
@@ -106,12 +126,14 @@ def test_bench_rendered_cases_include_unknown_wheel_scale_errors():
 @pytest.mark.skipif(not (SHARED_DATA / "kitti06_000-050").is_dir(), reason="KITTI excerpts not in ../shared/data")
 def test_bench_kitti_cases_synthetic_wheels(tmp_path):
     cases = [c for c in bench.kitti_cases() if c.path == SHARED_DATA / "kitti06_000-050"]
-    assert [c.name for c in cases] == ["kitti06_000-050", "kitti06_000-050_wheels+2pct"]
-    for case, expected in zip(cases, (1.01, 1.02), strict=True):
+    assert [c.name for c in cases] == ["kitti06_000-050", "kitti06_000-050_wheels+2pct", "kitti06_000-050_monocular"]
+    for case, expected in zip(cases[:2], (1.01, 1.02), strict=True):
         seq = load_sequence(config_from_dict(bench.case_config_data(case, tmp_path, tmp_path)))
         assert seq.odometry is not None and seq.odometry.synthetic
         ratio = _wheel_over_true_distance(seq)
         assert math.isclose(ratio, expected, abs_tol=0.005), (case.name, ratio)
+    mono = load_sequence(config_from_dict(bench.case_config_data(cases[2], tmp_path, tmp_path)))
+    assert mono.odometry is None and cases[2].wheel_scale_error is None
 
 
 @pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="needs Linux /proc")

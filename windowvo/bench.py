@@ -60,11 +60,12 @@ class SeqCase:
     kind: str  # synth | kitti
     spec: dict | None = None
     path: Path | None = None
-    kitti_wheel_scale_error: float = 0.01  # KITTI only: scale error of the synthetic wheels
+    kitti_wheel_scale_error: float | None = 0.01  # KITTI only: scale error of the synthetic wheels (None: no wheels)
 
     @property
-    def wheel_scale_error(self) -> float:
-        """The wheels' distance scale error (reported = (1 + e) * true); the estimator is not told."""
+    def wheel_scale_error(self) -> float | None:
+        """The wheels' distance scale error (reported = (1 + e) * true; None: no wheels, a monocular run);
+        the estimator is not told."""
         if self.kind == "kitti":
             return self.kitti_wheel_scale_error
         from .synth.generate import WheelErrorModel
@@ -100,13 +101,15 @@ def synthetic_cases(duration: float) -> list[SeqCase]:
 
 
 def kitti_cases() -> list[SeqCase]:
-    """Each excerpt once per synthetic wheel scale error (the first keeps the excerpt's name)."""
+    """Each excerpt once per synthetic wheel scale error (the first keeps the excerpt's name), and once
+    without wheels (monocular: the road at camera 0's height is the only scale source)."""
     out = []
     for name in ("kitti06_000-050", "kitti01_000-050"):
         if (SHARED_DATA / name).is_dir():
             for i, err in enumerate(KITTI_WHEEL_SCALE_ERRORS):
                 case_name = name if i == 0 else f"{name}_wheels{100 * err:+.0f}pct"
                 out.append(SeqCase(case_name, "kitti", path=SHARED_DATA / name, kitti_wheel_scale_error=err))
+            out.append(SeqCase(f"{name}_monocular", "kitti", path=SHARED_DATA / name, kitti_wheel_scale_error=None))
     return out
 
 
@@ -176,9 +179,10 @@ def case_config_data(case: SeqCase, cache: Path, out_root: Path, rerun: bool = F
         seq_dir = ensure_rendered(case, cache)
         data["sequence"] = str(seq_dir)
     else:
-        data.update(sequence=str(case.path), dataset="kitti",
-                    odometry_synthesis={"enabled": True, "scale_error": case.kitti_wheel_scale_error,
-                                        "yaw_bias_per_m": KITTI_WHEEL_YAW_BIAS_PER_M})
+        data.update(sequence=str(case.path), dataset="kitti")
+        if case.kitti_wheel_scale_error is not None:
+            data["odometry_synthesis"] = {"enabled": True, "scale_error": case.kitti_wheel_scale_error,
+                                          "yaw_bias_per_m": KITTI_WHEEL_YAW_BIAS_PER_M}
     data["output"] = str(out_root / case.name)
     return apply_overrides(data, list(overrides))
 
@@ -240,17 +244,19 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False,
         raise SequenceError(f"bench sequence {case.name!r} has no ground truth")
     wheel = wheel_only_trajectory(seq, r.trajectory.timestamps)
     row["wheel"] = _acc_row(evaluate(gt, wheel)) if wheel is not None else {}
-    chain = essential_chaining(seq)
-    row["chaining"] = _acc_row(evaluate(gt, chain.trajectory))
-    row["chaining_fps"] = chain.fps
-    row["chaining_failed_steps"] = chain.n_failed_steps
+    # The chaining baseline takes its scale from the wheels: none without them.
+    chain = essential_chaining(seq) if seq.odometry is not None else None
+    row["chaining"] = _acc_row(evaluate(gt, chain.trajectory)) if chain is not None else {}
+    row["chaining_fps"] = chain.fps if chain is not None else float("nan")
+    row["chaining_failed_steps"] = chain.n_failed_steps if chain is not None else 0
     estimates = {"windowvo": r.trajectory}
     if r.trajectory_online is not None:
         estimates["windowvo online (causal)"] = r.trajectory_online
     estimates["windowvo without ground cue"] = r_nc.trajectory
     if wheel is not None:
         estimates["wheel odometry"] = wheel
-    estimates["E-matrix chaining"] = chain.trajectory
+    if chain is not None:
+        estimates["E-matrix chaining"] = chain.trajectory
     plot_trajectories(out / "trajectories.png", gt, estimates, title=case.name)
     return row
 
@@ -272,11 +278,16 @@ def _f(v, fmt: str) -> str:
 
 def sequences_caption(rows: list[dict]) -> str:
     """Which wheels each sequence had (none of this is told to the estimator) and what the columns compare."""
-    groups: dict[tuple[str, float], list[str]] = {}
+    groups: dict[tuple[str, float | None], list[str]] = {}
     for r in rows:
         groups.setdefault((r.get("kind", "synth"), r["wheel_scale_error"]), []).append(r["sequence"])
     parts = []
-    for (kind, err), names in sorted(groups.items(), key=lambda kv: (kv[0][0] != "synth", kv[0][1])):
+    for (kind, err), names in sorted(groups.items(), key=lambda kv: (kv[0][0] != "synth", kv[0][1] is None,
+                                                                     kv[0][1] or 0.0)):
+        if err is None:
+            parts.append(f"no wheels (monocular, the floor at the camera height is the only scale source): "
+                         f"{', '.join(names)}")
+            continue
         what = ("rendered wheels" if kind == "synth" else
                 f"KITTI, synthetic wheels (yaw bias {KITTI_WHEEL_YAW_BIAS_PER_M} rad/m)")
         parts.append(f"{what} with a {100 * err:+.0f}% scale error: {', '.join(names)}")
@@ -311,6 +322,7 @@ def sequences_table(rows: list[dict]) -> str:
                     "online (causal) ATE SE(3) m": _f((r.get("windowvo_online") or {}).get("ate_se3_m"), ".3f"),
                     "ATE SE(3) without ground cue m": _f((nc.get("windowvo") or {}).get("ate_se3_m"), ".3f"),
                     "wheel scale error: true / estimated":
+                        "no wheels" if r["wheel_scale_error"] is None else
                         f"{100 * r['wheel_scale_error']:+.1f}% / "
                         + (f"{100 * (calib['scale'] - 1.0):+.1f}%" if calib else "-"),
                 })
