@@ -68,13 +68,19 @@ __all__ = ["C", "L", "OdometryStep", "SlidingWindowBackend", "X"]
 
 # After a reset the calibration restarts from its last estimate with this share of the prior sigmas.
 RESET_CALIBRATION_SIGMA_FACTOR = 0.2
-# A monocular run that saw no floor at its start becomes metric when the floor planes of two consecutive
-# keyframes give scales within this share of each other (one plane could be a table top).
-LATE_START_AGREEMENT = 0.1
+# A monocular run trusts a floor plane it cannot check against a metric height (at its late metric start,
+# and after its scale drifted) only when two consecutive keyframes' planes agree within this share (one
+# plane could be a table top): ``_floors_agree``.
+FLOOR_AGREEMENT = 0.1
 # Smallest camera height (m) for which the ground cue makes sense.
 MIN_CAMERA_HEIGHT_M = 0.05
 # Keyframes of the window needed before the base's rocking is judged (a median over fewer is noise).
 MIN_ROCKING_KEYFRAMES = 5
+
+
+def _floors_agree(previous: float, current: float) -> bool:
+    """Two consecutive keyframes' up-to-scale floor planes (scales or heights) agree within ``FLOOR_AGREEMENT``."""
+    return abs(current / previous - 1.0) <= FLOOR_AGREEMENT
 
 
 @dataclass
@@ -493,7 +499,7 @@ class SlidingWindowBackend:
         keyframes before the window (the window's go out as usual), or None when the run stays up to scale."""
         scale = self._floor_scale_now()
         prev, self._late_scale = self._late_scale, scale
-        if scale is None or prev is None or abs(scale / prev - 1.0) > LATE_START_AGREEMENT:
+        if scale is None or prev is None or not _floors_agree(prev, scale):
             return None
         s = float(np.sqrt(scale * prev))
         c0 = (self.kf_pose[0] @ self.T_base_cam)[:3, 3]
@@ -623,12 +629,12 @@ class SlidingWindowBackend:
         While no floor is in view the scale drifts like any monocular run's (KITTI 01 on the highway: 35%
         in 7 keyframes without floor tracks); when the floor is back, it lies at a height the metric fit
         rejects (``height_tolerance``), and the run would stay drifted. A plane found at the same height at
-        two consecutive keyframes (within ``LATE_START_AGREEMENT``, as at the late metric start: one plane
-        could be a table top) is taken as the floor again: its ground factors pull the scale back."""
+        two consecutive keyframes (``_floors_agree``, as at the late metric start: one plane could be a
+        table top) is taken as the floor again: its ground factors pull the scale back."""
         mask, fit = floor_mask(pts, T_guess, self.T_base_cam, self.camera_height_m, self.cfg.ground, self._rng,
                                metric_scale_known=False)
         prev, self._drift_height = self._drift_height, (None if fit is None else fit.camera_height_m)
-        if fit is None or prev is None or abs(fit.camera_height_m / prev - 1.0) > LATE_START_AGREEMENT:
+        if fit is None or prev is None or not _floors_agree(prev, fit.camera_height_m):
             return np.zeros(len(pts), bool), None
         self.n_scale_reanchors += 1
         log.info("keyframe %d: the floor is back, %.2f x the camera height below the camera (the scale drifted "
