@@ -5,7 +5,15 @@ import numpy as np
 import pytest
 
 from windowvo.geometry import inv_T
-from windowvo.synth.generate import LensPreset, SynthSpec, build_world, lens_fields
+from windowvo.synth.generate import (
+    KERB_CLEARANCE_M,
+    KERB_SIDE_M,
+    LensPreset,
+    SynthSpec,
+    build_world,
+    lens_fields,
+    place_kerbs,
+)
 from windowvo.synth.paths import PathKind
 from windowvo.synth.scene import Renderer
 
@@ -143,8 +151,39 @@ def test_floor_hidden_frames_blank_the_view_below_the_horizon(tmp_path):
             assert np.array_equal(hidden, plain)
 
 
+def test_kerbs_stand_beside_the_path_at_their_height():
+    """Kerbs line both sides of the path, never on it; seen from the robot, some pixels of the view below the
+    horizon end on their tops, at the kerb height, and the rest on the floor."""
+    spec = SynthSpec(path=PathKind.LOOP, duration_s=20.0, seed=3, n_obstacles=0, kerb_height_m=0.03)
+    world = build_world(spec)
+    kerbs = place_kerbs(world.planar, 0.03)
+    assert len(kerbs) > 20
+    path = world.planar.points()
+    centres = np.array([(x, y) for x, y, *_ in kerbs])
+    gap = np.min(np.hypot(path[:, None, 0] - centres[None, :, 0], path[:, None, 1] - centres[None, :, 1]), axis=0)
+    assert gap.min() >= KERB_CLEARANCE_M and gap.max() <= KERB_SIDE_M + 1e-6
+    # on both sides: the cross product of the heading and the offset takes both signs
+    i = np.argmin(np.hypot(path[:, None, 0] - centres[None, :, 0], path[:, None, 1] - centres[None, :, 1]), axis=0)
+    heading = np.diff(path, axis=0)[np.minimum(i, len(path) - 2)]
+    off = centres - path[i]
+    side = np.sign(heading[:, 0] * off[:, 1] - heading[:, 1] * off[:, 0])
+    assert (side > 0).sum() > 5 and (side < 0).sum() > 5
+    cam = world.camera
+    r = Renderer(world.scene, cam)
+    T_wc = world.T_world_base(5.0) @ cam.T_base_cam
+    _img, range_m = r.render(T_wc, 5.0)
+    d_world = cam.pixel_bearings() @ T_wc[:3, :3].T
+    got = range_m.ravel()
+    down = (d_world[:, 2] < -0.05) & np.isfinite(got) & r.valid.ravel()
+    z = T_wc[2, 3] + got[down] * d_world[down, 2]
+    on_floor, on_kerb = np.abs(z) < 1e-3, np.abs(z - 0.03) < 1e-3
+    assert on_kerb.mean() > 0.02 and on_floor.mean() > 0.5
+
+
 @pytest.mark.parametrize("args,message", [(["--floor-hidden-frames", "-3"], "floor_hidden_frames must be 0 or more"),
-                                          (["--duration", "-1"], "duration and fps must be positive")])
+                                          (["--duration", "-1"], "duration and fps must be positive"),
+                                          (["--kerb-height", "0.5"], "kerb_height_m must lie in [0, camera height"),
+                                          (["--floor-contrast", "-1"], "floor_contrast must be 0 or more")])
 def test_synth_command_line_bad_values_are_one_line(tmp_path, args, message):
     import subprocess
     import sys

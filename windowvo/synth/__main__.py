@@ -57,6 +57,9 @@ def main(argv=None) -> int:
                         "calibration)")
     p.add_argument("--ramp-height", type=float, default=0.0, help="ramp height in m (path=ramp uses 0.6 if 0)")
     p.add_argument("--obstacles", type=int, default=10)
+    p.add_argument("--kerb-height", type=float, default=0.0,
+                   help="low platforms this high (m) on both sides of the path (kerbs, mats); 0: none")
+    p.add_argument("--floor-contrast", type=float, default=1.0, help="floor texture contrast (0: featureless)")
     p.add_argument("--moving", type=int, default=0, help="moving obstacles crossing the path")
     p.add_argument("--image-noise", type=float, default=0.0, help="grey-level std")
     p.add_argument("--exposure", type=float, default=0.0, help="relative gain swing, e.g. 0.3")
@@ -89,6 +92,7 @@ def main(argv=None) -> int:
             path=PathKind(a.path), duration_s=a.duration, fps=a.fps, speed=a.speed, seed=a.seed,
             width=a.width, height=a.height, **lens,
             vibration_deg=a.vibration_deg, calib_pitch_error_deg=a.calib_pitch_error_deg, ramp_height_m=a.ramp_height, n_obstacles=a.obstacles, n_moving=a.moving,
+            kerb_height_m=a.kerb_height, floor_contrast=a.floor_contrast,
             image_noise=a.image_noise, exposure_variation=a.exposure, exposure_jumps=a.exposure_jumps,
             wheel=WheelErrorModel(scale_error=a.odo_scale_error, yaw_bias_per_m=a.odo_yaw_bias,
                                   distance_noise=a.odo_noise, yaw_noise=a.odo_noise, slip_windows=_ranges(a.slip)),

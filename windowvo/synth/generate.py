@@ -84,6 +84,9 @@ class SynthSpec:
     ramp_height_m: float = 0.0  # >0 puts a ramp in the path (use with path=ramp)
     floor_contrast: float = 1.0  # floor texture contrast (0: a featureless floor)
     n_obstacles: int = 10
+    # Low platforms this high (m) on both sides of the path, textured like everything else: surfaces just
+    # above the floor that a floor-plane fit can take for it (kerbs and pavements beside a road, mats, pallets).
+    kerb_height_m: float = 0.0
     n_moving: int = 0
     image_noise: float = 0.0  # std of additive noise, grey levels
     exposure_variation: float = 0.0  # relative gain swing (0.3 = +-30 %)
@@ -106,6 +109,11 @@ class SynthSpec:
             raise ValueError(f"duration and fps must be positive (got {self.duration_s} s at {self.fps} fps)")
         if self.floor_hidden_frames < 0:
             raise ValueError(f"floor_hidden_frames must be 0 or more (got {self.floor_hidden_frames})")
+        if self.floor_contrast < 0:
+            raise ValueError(f"floor_contrast must be 0 or more (got {self.floor_contrast})")
+        if not 0.0 <= self.kerb_height_m < self.camera_height_m:
+            raise ValueError(f"kerb_height_m must lie in [0, camera height {self.camera_height_m} m) "
+                             f"(got {self.kerb_height_m})")
 
 
 @dataclass
@@ -177,6 +185,31 @@ def _place_obstacles(rng, planar: PlanarPath, n: int, half: float, clearance: fl
     return out
 
 
+# Kerbs: square platforms of KERB_SIZE_M every KERB_STEP_M along the path, KERB_SIDE_M either side of it,
+# none closer than KERB_CLEARANCE_M to any point of the path (the robot never drives onto one).
+KERB_STEP_M, KERB_SIDE_M, KERB_SIZE_M, KERB_CLEARANCE_M = 1.2, 0.75, 0.5, 0.45
+
+
+def place_kerbs(planar: PlanarPath, height: float) -> list[tuple[float, float, float, float, float]]:
+    """Low platforms ``(x, y, sx, sy, sz)`` on both sides of the path, ``height`` high."""
+    pts = planar.points()
+    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
+    out: list[tuple[float, float, float, float, float]] = []
+    for s in np.arange(0.5 * KERB_STEP_M, along[-1], KERB_STEP_M):
+        i = min(int(np.searchsorted(along, s)), len(pts) - 2)
+        tangent = pts[i + 1] - pts[i]
+        if np.linalg.norm(tangent) < 1e-9:
+            continue
+        side = np.array([-tangent[1], tangent[0]]) / np.linalg.norm(tangent)
+        for c in (pts[i] - KERB_SIDE_M * side, pts[i] + KERB_SIDE_M * side):
+            if np.min(np.hypot(*(pts - c).T)) < KERB_CLEARANCE_M:
+                continue  # where the path turns or crosses itself
+            if any(np.hypot(c[0] - o[0], c[1] - o[1]) < KERB_SIZE_M for o in out):
+                continue
+            out.append((float(c[0]), float(c[1]), KERB_SIZE_M, KERB_SIZE_M, float(height)))
+    return out
+
+
 def build_world(spec: SynthSpec) -> SyntheticWorld:
     rng = np.random.default_rng(spec.seed)
     planar = make_path(spec.path, spec.duration_s, spec.speed)
@@ -189,6 +222,8 @@ def build_world(spec: SynthSpec) -> SyntheticWorld:
     half_x = max(half_x, float(np.abs(planar.x).max()) + 2.5)
     half_y = max(9.0, float(np.abs(planar.y).max()) + 2.5)
     obstacles = _place_obstacles(rng, planar, spec.n_obstacles, min(half_x, half_y))
+    if spec.kerb_height_m > 0:
+        obstacles += place_kerbs(planar, spec.kerb_height_m)
     moving = []
     for k in range(spec.n_moving):
         # Boxes that cross the path back and forth, like people or forklifts.
