@@ -15,6 +15,7 @@ from windowvo.backend.ground import (
     level_up,
     levelled_mount,
     normal_from_tilt_deg,
+    off_floor,
     tilt_significant,
 )
 from windowvo.backend.smoother import SlidingWindowBackend, WheelCalibration
@@ -296,6 +297,21 @@ def test_floor_detection_switches_off_where_the_floor_assumption_breaks():
     assert fit is not None and not mask[: len(floor)][on_ramp].any()
     # a camera that sees no floor
     assert fit_floor_plane(np.zeros((0, 3)), np.zeros(3), 0.45, GroundConfig(), rng) is None
+
+
+def test_off_floor_unties_a_raised_surface_and_little_else():
+    rng = np.random.default_rng(7)
+    floor = rng.normal(0.0, 0.004, 80)
+    kerb = 0.03 + rng.normal(0.0, 0.004, 20)  # a fifth of the tied points on a surface 3 cm up
+    off = off_floor(np.concatenate([floor, kerb]), 2.5, 0.001)
+    assert off[80:].mean() >= 0.9 and off[:80].mean() <= 0.05
+    # a plain floor: only the tails go, both of them (the floor's height is not biased)
+    plain = rng.normal(0.0, 0.004, 400)
+    off = off_floor(plain, 2.5, 0.001)
+    assert off.mean() <= 0.05 and (plain[off] > 0).any() and (plain[off] < 0).any()
+    # the robust sigma has a floor: near-perfect heights untie nothing a millimetre off
+    assert not off_floor(np.r_[np.zeros(30), 0.001], 2.5, 0.002).any()
+    assert not off_floor(np.array([0.0] * 5 + [0.5]), 2.5, 0.001).any()  # too few points to judge
 
 
 def test_floor_points_at_the_base_origin_are_not_candidates():

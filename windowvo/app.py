@@ -187,6 +187,7 @@ def run_and_report(cfg: Config) -> RunResult:
         "scale_sources": r.scale_sources,
         "metric_from_frame": r.metric_from_frame,
         "floor_scale_reanchors": r.floor_scale_reanchors,
+        "floor_untied": r.floor_untied,
         "wheel_calibration": None if r.wheel_calibration is None else {
             "scale": round(r.wheel_calibration.scale, 5), "scale_sigma": round(r.wheel_calibration.scale_sigma, 5),
             "yaw_bias_per_m": round(r.wheel_calibration.yaw_bias_per_m, 6),
@@ -234,6 +235,9 @@ def run_and_report(cfg: Config) -> RunResult:
                         "T_base_cam_levelled) or set backend.ground.mount_calibration: auto or on", np.hypot(tx, ty))
         elif significant:
             floor.append("T_base_cam levelled by it in summary.json (T_base_cam_levelled)")
+    if r.floor_untied:
+        floor.append(f"{r.floor_untied} floor landmarks found off it in later views and untied (a kerb or mat beside "
+                     f"it; backend.ground.untie_sigmas)")
     if floor:
         lines.append("floor: " + "; ".join(floor))
     if report.accuracy is not None:

@@ -64,6 +64,8 @@ class RunResult:
     # A monocular run whose scale drifted while the floor was out of view: keyframes where the floor was taken
     # back at the drifted height (its ground factors then pull the scale back).
     floor_scale_reanchors: int = 0
+    # Ground factors removed from floor landmarks that later turned out to lie off the floor (a kerb beside it).
+    floor_untied: int = 0
     wheel_calibration: WheelCalibration | None = None  # final online estimate (with wheels)
     trajectory_online: Trajectory | None = None  # causal pose per frame, as a robot had it at that time
 
@@ -185,7 +187,8 @@ class Pipeline:
         if interrupted and self.worker is not None and self.vo.remote_report is None:
             # Aborted at once: what the worker knew about the scale is lost; the poses are not.
             self.vo.remote_report = {"metric": self.use_odometry, "scale_sources": [], "wheel_calibration": None,
-                                     "metric_from_frame": None, "floor_scale_reanchors": 0, "n_resets": 0}
+                                     "metric_from_frame": None, "floor_scale_reanchors": 0, "floor_untied": 0,
+                                     "n_resets": 0}
         if stop["signal"] is not None or interrupted:
             interrupted = True
             last = self.frames[-1][0] if self.frames else -1

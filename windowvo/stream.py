@@ -267,4 +267,5 @@ def backend_scale_report(be: SlidingWindowBackend) -> dict:
         "wheel_calibration": be.calibration_with_sigma() if be.calibrate and be.k >= 0 else None,
         "metric_from_frame": None if be.metric_from_keyframe is None else be.kf_frame[be.metric_from_keyframe],
         "floor_scale_reanchors": be.n_scale_reanchors,
+        "floor_untied": be.n_floor_untied,
     }

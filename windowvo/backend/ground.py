@@ -19,7 +19,8 @@ mount is seldom calibrated to better than a degree: ``FloorAttitude`` learns the
 the base frame from the planes fitted so far, so that a mount's pitch or roll error does not turn
 into a scale error (1 deg of pitch made 5.5% of scale error on the rendered loop);
 ``tilt_significant`` says when that tilt is the mount's, and ``levelled_mount`` corrects
-``T_base_cam`` by it.
+``T_base_cam`` by it. ``off_floor`` tells which tied floor landmarks, seen again from later
+keyframes, turn out to lie off the floor (a kerb beside it), so that they lose their ground factor.
 
 Pure numpy: no GTSAM here, so the detector is tested on its own.
 """
@@ -160,6 +161,30 @@ def camera_height_up_to_scale(p_cam: np.ndarray, cfg: GroundConfig, rng: np.rand
             return None
         height = fit.camera_height_m
     return height
+
+
+# Untying floor landmarks off the floor (``off_floor``): fewer tied landmarks than this and nothing is judged;
+# the robust sigma is at least this share of the camera height (a window of near-perfect heights must not
+# untie the points a millimetre off).
+UNTIE_MIN_POINTS = 10
+UNTIE_MIN_SIGMA_HEIGHTS = 0.01
+
+
+def off_floor(heights_m: np.ndarray, k_sigma: float, min_sigma_m: float) -> np.ndarray:
+    """Which tied floor landmarks stray from the floor: heights (above the floor of the keyframe that tied
+    each) farther than ``k_sigma`` robust sigmas (1.4826 x MAD, at least ``min_sigma_m``) from their median.
+
+    The plane fit at a landmark's birth judges it from two or three views; a raised surface beside the floor
+    (a kerb, a pavement, a mat a few centimetres up) is then within its band, and tying it to the floor pulls
+    the scale by its height over the camera height. Seen again from the window's later keyframes its height is
+    known better, and it stands out of the heights of the floor's points. Symmetric, so that on a plain floor
+    only the tails of the noise go and the floor's height is not biased."""
+    h = np.asarray(heights_m, float)
+    if len(h) < UNTIE_MIN_POINTS:
+        return np.zeros(len(h), bool)
+    med = float(np.median(h))
+    sigma = max(1.4826 * float(np.median(np.abs(h - med))), min_sigma_m)
+    return np.abs(h - med) > k_sigma * sigma
 
 
 def attitude_jitter_deg(z_axes: np.ndarray) -> float:

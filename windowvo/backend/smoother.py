@@ -53,12 +53,14 @@ from ..types import BackendOutput, BackendStatus, FrontendOutput, GateOutcome, O
 from . import factors as fac
 from .factors import C, L, X
 from .ground import (
+    UNTIE_MIN_SIGMA_HEIGHTS,
     FloorAttitude,
     PlaneFit,
     attitude_jitter_deg,
     camera_height_up_to_scale,
     floor_mask,
     level_up,
+    off_floor,
 )
 from .landmarks import LandmarkManager, reprojection_errors, reprojection_rms, triangulate_midpoint
 
@@ -151,6 +153,7 @@ class SlidingWindowBackend:
         self._drift_height: float | None = None
         self.n_scale_reanchors = 0
         self.n_ground_factors = 0
+        self.n_floor_untied = 0  # ground factors removed from floor landmarks found off the floor (``_untie_off_floor``)
         self.n_level_ground_factors = 0  # of them, measured along the floor's normal (the base rocks)
         self.base_rocking_deg = float("nan")  # attitude_jitter_deg over the window at the last floor fit
         self.level_frame = False  # the last update measured its floor points in the level frame
@@ -385,6 +388,7 @@ class SlidingWindowBackend:
         self.n_ground_keyframes += int(n_ground > 0)
         self._refresh_states()
         self.lm.prune(w0)
+        self._untie_off_floor(w0)
         ids, p_world, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, k)
         errs = reprojection_errors(self.camera, self.kf_pose[k], self.T_base_cam, p_world, uv)
         self.lm.check_outliers(ids, errs, self.window_start(k + 1))
@@ -677,6 +681,37 @@ class SlidingWindowBackend:
             removed.append(fi)
         log.info("keyframe %d: %d floor landmarks of the window re-tied along the learnt normal", self.k, len(removed))
         return removed
+
+    def _untie_off_floor(self, w0: int) -> None:
+        """Remove (at the next update) the ground factors of the window's floor landmarks whose height above the
+        floor of the keyframe that tied them, in the new estimate, strays from the others' (``ground.off_floor``).
+
+        Only native ground factors (``lm.ground_factor``); the level frame's, on a rocking base, are left alone.
+        Measured (README, Performance): a loop lined with 3 cm kerbs, wheels +2%: ATE SE(3) 0.041 -> 0.013 m
+        (without wheels 0.097 -> 0.017 m); 19 plain loops and figure eights 0.59x-1.64x, geometric mean 1.00."""
+        k_sigma = self.cfg.ground.untie_sigmas
+        if k_sigma is None:
+            return
+        n_base = self.floor_normal_base()
+        up = np.array([0.0, 0.0, 1.0]) if n_base is None else n_base
+        offset = self.floor_offset(n_base)
+        tied: list[tuple[int, int, int]] = []
+        heights: list[float] = []
+        for tid, lm in self.lm.landmarks.items():
+            if lm.ground_factor is None or lm.ground_factor[0] < w0:
+                continue
+            p_world = self.lm.position(tid)
+            if p_world is None:
+                continue
+            T = self.kf_pose[lm.ground_factor[0]]
+            heights.append(float(up @ ((p_world - T[:3, 3]) @ T[:3, :3])) - offset)
+            tied.append((tid, *lm.ground_factor))
+        off = off_floor(np.asarray(heights), k_sigma, UNTIE_MIN_SIGMA_HEIGHTS * self.camera_height_m)
+        for (tid, kk, fi), is_off in zip(tied, off):
+            if is_off:
+                self.lm.drop_factor(tid, kk, fi)
+                self.lm.pending_removal.append(fi)
+                self.n_floor_untied += 1
 
     def _judge_mount(self) -> None:
         """``ground.mount_calibration`` auto: switch to the learnt floor normal once its tilt is significant.
