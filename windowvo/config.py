@@ -204,11 +204,12 @@ class GroundConfig(_Section):
     mount_min_fits: int = Field(10, ge=1, description="floor plane fits before the learnt normal is reported and used")
     mount_fits: int = Field(200, ge=1, description="the learnt normal is the median of this many latest fits")
     untie_sigmas: float | None = Field(
-        2.5, gt=0, description="after every update, a floor landmark whose height above the floor of the keyframe "
-        "that tied it lies more than this many robust sigmas (1.4826 x the median absolute deviation over the "
-        "window's tied floor landmarks) from their median loses its ground factor and keeps its projections: points "
-        "on a surface just above the floor (kerbs, pavements, mats) that the plane fit took for it. Level-frame "
-        "ground factors (a rocking base) are not checked. null: never")
+        2.5, gt=0, description="after every update the window's tied floor landmarks are judged again: heights "
+        "above the floor of the keyframe that tied each, in robust sigmas (1.4826 x MAD, at least 1% of the camera "
+        "height) from their median. When at least twice as many lie beyond this many sigmas above as below (and 5 "
+        "more: a surface just above the floor, kerbs, pavements, mats, that the plane fit took for it), those beyond "
+        "it on either side lose their ground factors and keep their projections. Level-frame ground factors (a "
+        "rocking base) are not judged. null: never")
 
 
 class WheelCalibrationConfig(_Section):
