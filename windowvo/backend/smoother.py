@@ -707,9 +707,8 @@ class SlidingWindowBackend:
         if not tied:
             return
         # Height along ``up`` in the tying keyframe's base frame: up . R^T (p - t), for all points at once.
-        kfs = np.array([kk for _, kk, _ in tied])
-        R = np.stack([self.kf_pose[kk][:3, :3] for kk in kfs.tolist()])
-        t = np.stack([self.kf_pose[kk][:3, 3] for kk in kfs.tolist()])
+        T = np.stack([self.kf_pose[kk] for _, kk, _ in tied])
+        R, t = T[:, :3, :3], T[:, :3, 3]
         heights = np.einsum("nij,ni,j->n", R, np.asarray(points) - t, up) - offset
         off = off_floor(heights, k_sigma, UNTIE_MIN_SIGMA_HEIGHTS * self.camera_height_m)
         for (tid, kk, fi), is_off in zip(tied, off):
