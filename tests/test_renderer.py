@@ -160,10 +160,11 @@ def test_kerbs_stand_beside_the_path_at_their_height():
     assert len(kerbs) > 20
     path = world.planar.points()
     centres = np.array([(x, y) for x, y, *_ in kerbs])
-    gap = np.min(np.hypot(path[:, None, 0] - centres[None, :, 0], path[:, None, 1] - centres[None, :, 1]), axis=0)
+    dist = np.hypot(path[:, None, 0] - centres[None, :, 0], path[:, None, 1] - centres[None, :, 1])  # (path, kerbs)
+    gap = dist.min(axis=0)
     assert gap.min() >= KERB_CLEARANCE_M and gap.max() <= KERB_SIDE_M + 1e-6
     # on both sides: the cross product of the heading and the offset takes both signs
-    i = np.argmin(np.hypot(path[:, None, 0] - centres[None, :, 0], path[:, None, 1] - centres[None, :, 1]), axis=0)
+    i = dist.argmin(axis=0)
     heading = np.diff(path, axis=0)[np.minimum(i, len(path) - 2)]
     off = centres - path[i]
     side = np.sign(heading[:, 0] * off[:, 1] - heading[:, 1] * off[:, 0])

@@ -200,6 +200,18 @@ class LandmarkManager:
         if lm.ground_factor == (k, index):
             lm.ground_factor = None
 
+    def tied_to_floor(self, window_start: int) -> list[tuple[int, int, int, np.ndarray]]:
+        """Landmarks whose native ground factor ties them to a keyframe still in the window, with a position in
+        the last estimate: (track id, that keyframe, the factor's smoother index, p_world_landmark)."""
+        out = []
+        for tid, lm in self.landmarks.items():
+            if lm.ground_factor is None or lm.ground_factor[0] < window_start:
+                continue
+            p_world = self._where.get(tid)
+            if p_world is not None:
+                out.append((tid, *lm.ground_factor, p_world))
+        return out
+
     def position(self, tid: int) -> np.ndarray | None:
         """A landmark's world position in the last estimate (None if it has none)."""
         return self._where.get(tid)

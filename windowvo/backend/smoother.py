@@ -666,16 +666,11 @@ class SlidingWindowBackend:
         n_base = self.floor_normal_base()
         offset = self.floor_offset(n_base)
         removed = []
-        for tid, lm in self.lm.landmarks.items():
-            if lm.ground_factor is None or lm.last_kf < w0:
-                continue
-            kk, fi = lm.ground_factor
-            p_world = self.lm.position(tid)
-            if kk < w0 or p_world is None:
-                continue
+        for tid, kk, fi, p_world in self.lm.tied_to_floor(w0):
             T = self.kf_pose[kk]
             p_base = (p_world - T[:3, 3]) @ T[:3, :3]
-            graph.add(fac.ground_factor(X(kk), lm.key, p_base, offset, self.ground_sigma_m, self.cfg, n_base))
+            key = self.lm.landmarks[tid].key
+            graph.add(fac.ground_factor(X(kk), key, p_base, offset, self.ground_sigma_m, self.cfg, n_base))
             owners.append((tid, kk, True))
             self.lm.drop_factor(tid, kk, fi)
             removed.append(fi)
@@ -695,23 +690,15 @@ class SlidingWindowBackend:
         n_base = self.floor_normal_base()
         up = np.array([0.0, 0.0, 1.0]) if n_base is None else n_base
         offset = self.floor_offset(n_base)
-        tied: list[tuple[int, int, int]] = []
-        points: list[np.ndarray] = []
-        for tid, lm in self.lm.landmarks.items():
-            if lm.ground_factor is None or lm.ground_factor[0] < w0:
-                continue
-            p_world = self.lm.position(tid)
-            if p_world is not None:
-                tied.append((tid, *lm.ground_factor))
-                points.append(p_world)
+        tied = self.lm.tied_to_floor(w0)
         if not tied:
             return
         # Height along ``up`` in the tying keyframe's base frame: up . R^T (p - t), for all points at once.
-        T = np.stack([self.kf_pose[kk] for _, kk, _ in tied])
-        R, t = T[:, :3, :3], T[:, :3, 3]
-        heights = np.einsum("nij,ni,j->n", R, np.asarray(points) - t, up) - offset
+        T = np.stack([self.kf_pose[kk] for _, kk, _, _ in tied])
+        p = np.stack([p_world for *_, p_world in tied])
+        heights = np.einsum("nij,ni,j->n", T[:, :3, :3], p - T[:, :3, 3], up) - offset
         off = off_floor(heights, k_sigma, UNTIE_MIN_SIGMA_HEIGHTS * self.camera_height_m)
-        for (tid, kk, fi), is_off in zip(tied, off):
+        for (tid, kk, fi, _), is_off in zip(tied, off):
             if is_off:
                 self.lm.drop_factor(tid, kk, fi)
                 self.lm.pending_removal.append(fi)
