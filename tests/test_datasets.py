@@ -10,13 +10,14 @@ import pytest
 import yaml
 from conftest import SHARED_DATA, make_config
 
+from windowvo import io
 from windowvo.app import run_and_report, run_job
 from windowvo.config import config_from_dict, load_config
 from windowvo.errors import CalibrationError, SequenceError
 from windowvo.eval.baselines import essential_chaining
 from windowvo.eval.metrics import evaluate
 from windowvo.geometry import make_T, rpy_to_R
-from windowvo.io import datasets
+from windowvo.io import euroc, kitti
 from windowvo.io.sequence import load_native
 
 R_BC = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -46,9 +47,9 @@ def test_kitti_fixture(tmp_path):
     (root / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(5)))
     poses = _cam_poses(5)
     (root / "poses.txt").write_text("".join(" ".join(f"{x:.9e}" for x in T[:3].ravel()) + "\n" for T in poses))
-    seq = datasets.load_kitti(root)
+    seq = kitti.load_kitti(root)
     assert (seq.camera.fx, seq.camera.fy, seq.camera.cx, seq.camera.cy) == (700, 705, 30, 20)
-    assert abs(datasets.read_kitti_calib(root / "calib.txt")[1] - 0.54) < 1e-9
+    assert abs(kitti.read_kitti_calib(root / "calib.txt")[1] - 0.54) < 1e-9
     # the base lies on the road 1.65 m below camera 0
     assert np.allclose(seq.camera.T_base_cam[:3, 3], [0.0, 0.0, 1.65])
     # camera moving along its z axis is the base moving along x (forward)
@@ -58,10 +59,10 @@ def test_kitti_fixture(tmp_path):
     assert np.allclose(gt[3][:3, :3], R_BC @ poses[3][:3, :3] @ R_BC.T)
     (root / "poses.txt").write_text("1 2 3\n")
     with pytest.raises(SequenceError, match="expected 12 numbers"):
-        datasets.load_kitti(root)
+        kitti.load_kitti(root)
     (root / "calib.txt").write_text("P1: 1 2\n")
     with pytest.raises(CalibrationError):
-        datasets.load_kitti(root)
+        kitti.load_kitti(root)
 
 
 def rodrigues(axis, angle: float) -> np.ndarray:
@@ -106,7 +107,7 @@ def test_tum_fixture(tmp_path):
     (root / "groundtruth.txt").write_text("# ground truth\n# timestamp tx ty tz qx qy qz qw\n" + "\n".join(rows) + "\n")
     cfg = config_from_dict({"sequence": str(root), "output": str(tmp_path / "o"), "dataset": "tum",
                             "camera": {"width": 64, "height": 48, "fx": 50, "fy": 50, "cx": 32, "cy": 24}})
-    seq = datasets.load(cfg)
+    seq = io.load(cfg)
     assert len(seq) == 4 and seq.camera.fx == 50
     gt = seq.groundtruth
     assert np.allclose(gt.timestamps, t_img)
@@ -118,7 +119,7 @@ def test_tum_fixture(tmp_path):
     # the camera's optical axis (z) maps to the base's forward axis (x)
     assert np.allclose(R_BC @ np.array([0.0, 0.0, 1.0]), [1.0, 0.0, 0.0])
     with pytest.raises(CalibrationError, match="camera"):
-        datasets.load(config_from_dict({"sequence": str(root), "output": "o", "dataset": "tum"}))
+        io.load(config_from_dict({"sequence": str(root), "output": "o", "dataset": "tum"}))
 
 
 def _euroc(tmp_path) -> Path:
@@ -161,7 +162,7 @@ distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]
 
 
 def test_euroc_fixture(tmp_path):
-    seq = datasets.load_euroc(_euroc(tmp_path))
+    seq = euroc.load_euroc(_euroc(tmp_path))
     cam = seq.camera
     assert cam.distortion_model.value == "radtan" and len(cam.distortion) == 4
     assert abs(cam.fx - 458.654) < 1e-9 and abs(cam.T_base_cam[0, 3] + 0.0216401454975) < 1e-12
@@ -185,40 +186,40 @@ def test_planar_prior_is_off_by_default_for_handheld_and_drone_layouts(tmp_path,
         root = _euroc(tmp_path)
         extra = {}
     base = {"sequence": str(root), "output": str(tmp_path / "o"), "dataset": kind, **extra}
-    cfg = config_from_dict(dict(base))
-    assert cfg.backend.planar_prior.enabled  # the config's own default
+    # applied while the config is built, so the validated (and resolved) config says what runs
     with caplog.at_level(logging.INFO, logger="windowvo"):
-        datasets.load(cfg)
+        cfg = config_from_dict(dict(base))
     assert cfg.backend.planar_prior.enabled is False
+    assert cfg.to_yaml_dict()["backend"]["planar_prior"]["enabled"] is False
     assert any("planar roll/pitch prior is off" in r.getMessage() for r in caplog.records)
+    io.load(cfg)  # the loader changes nothing more
+    assert cfg.backend.planar_prior.enabled is False
     # other planar-prior keys do not count as a choice about the prior itself
     cfg = config_from_dict({**base, "backend": {"planar_prior": {"sigma_rad": 0.2}}})
-    datasets.load(cfg)
     assert cfg.backend.planar_prior.enabled is False and cfg.backend.planar_prior.sigma_rad == 0.2
     # explicit: the user's setting wins, from the file or from a dotted override
     caplog.clear()
-    cfg = config_from_dict({**base, "backend": {"planar_prior": {"enabled": True}}})
     with caplog.at_level(logging.INFO, logger="windowvo"):
-        datasets.load(cfg)
+        cfg = config_from_dict({**base, "backend": {"planar_prior": {"enabled": True}}})
+    io.load(cfg)
     assert cfg.backend.planar_prior.enabled is True
     assert not any("planar roll/pitch prior" in r.getMessage() for r in caplog.records)
     cfg_path = tmp_path / "c.yaml"
     cfg_path.write_text(yaml.safe_dump(base))
     cfg = load_config(cfg_path, ["backend.planar_prior.enabled=true"])
-    datasets.load(cfg)
     assert cfg.backend.planar_prior.enabled is True
 
 
 def test_planar_prior_stays_on_for_ground_robot_layouts(tmp_path, short_loop):
     cfg = config_from_dict({"sequence": str(short_loop), "output": str(tmp_path / "o")})
-    datasets.load(cfg)
+    io.load(cfg)
     assert cfg.dataset.value == "native" and cfg.backend.planar_prior.enabled is True
     root = tmp_path / "kitti"
     _images(root / "image_0", 3)
     (root / "calib.txt").write_text("P0: 700 0 30 0 0 705 20 0 0 0 1 0\n")
     (root / "times.txt").write_text("0.0\n0.1\n0.2\n")
     cfg = config_from_dict({"sequence": str(root), "output": str(tmp_path / "o"), "dataset": "kitti"})
-    datasets.load(cfg)
+    io.load(cfg)
     assert cfg.backend.planar_prior.enabled is True
 
 
@@ -227,7 +228,7 @@ def test_folder_and_convert(tmp_path):
     _images(root, 6)
     cfg = config_from_dict({"sequence": str(root), "output": str(tmp_path / "o"), "dataset": "folder", "fps": 10,
                             "camera": {"width": 64, "height": 48, "fx": 50, "fy": 50, "cx": 32, "cy": 24}})
-    seq = datasets.load(cfg)
+    seq = io.load(cfg)
     assert len(seq) == 6 and np.allclose(np.diff(seq.timestamps), 0.1)
     from windowvo.convert import convert
 
@@ -241,7 +242,7 @@ def test_odometry_synthesis_is_labelled(tmp_path, short_loop):
                             "odometry_synthesis": {"enabled": True}})
     seq = load_native(short_loop)
     seq.odometry = None
-    seq = datasets.finish_sequence(seq, cfg)
+    seq = io.finish_sequence(seq, cfg)
     assert seq.odometry.synthetic
     assert any("SYNTHETIC" in w for w in seq.warnings)
 

@@ -184,7 +184,7 @@ def test_kitti_ground_cue_never_makes_it_worse(tmp_path, name):
 
 
 def test_kitti_base_is_on_the_road():
-    from windowvo.io.datasets import load_kitti
+    from windowvo.io.kitti import load_kitti
 
     root = SHARED_DATA / "kitti06_000-050"
     if not root.is_dir():

@@ -37,9 +37,9 @@ class JobReport:
 
 
 def load_sequence(cfg: Config) -> Sequence:
-    from .io import datasets
+    from . import io
 
-    return datasets.load(cfg)
+    return io.load(cfg)
 
 
 def wheel_only_trajectory(seq: Sequence, timestamps: np.ndarray) -> Trajectory | None:

@@ -8,6 +8,7 @@ keys, wrong types and impossible values with one line that names the key.
 from __future__ import annotations
 
 import enum
+import logging
 from pathlib import Path
 from typing import Literal
 
@@ -15,6 +16,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 
 class _Section(BaseModel):
@@ -416,6 +419,13 @@ class Config(_Section):
     viz: VizConfig = Field(VizConfig(), description="Rerun recording or live viewer")
     checks: InputChecksConfig = Field(InputChecksConfig(), description="screening of input frames")
 
+    @model_validator(mode="before")
+    @classmethod
+    def _layout_defaults(cls, data):
+        """Defaults that depend on the layout, applied while the config is built so that the validated (and
+        resolved) config says what runs; an explicit setting always wins."""
+        return apply_layout_defaults(data)
+
     @model_validator(mode="after")
     def _check(self) -> Config:
         if self.gates.min_parallax_px > self.keyframes.min_parallax_px:
@@ -424,6 +434,32 @@ class Config(_Section):
 
     def to_yaml_dict(self) -> dict:
         return self.model_dump(mode="json")
+
+
+# Layouts recorded by hand-held cameras (tum) or drones (euroc): their base is not a ground
+# robot's level, z-up base, so the priors that assume one are off unless the config sets them.
+NOT_GROUND_ROBOT = (DatasetKind.TUM, DatasetKind.EUROC)
+
+
+def apply_layout_defaults(data):
+    """A config mapping with the layout's defaults filled in where the mapping leaves them unset (logged at INFO);
+    anything else (not a mapping, an unknown dataset) is returned as it is, for validation to judge."""
+    if not isinstance(data, dict):
+        return data
+    try:
+        kind = DatasetKind(data.get("dataset", DatasetKind.NATIVE))
+    except ValueError:
+        return data
+    backend = data.get("backend")
+    pp = backend.get("planar_prior") if isinstance(backend, dict) else None
+    if kind not in NOT_GROUND_ROBOT or (backend is not None and not isinstance(backend, dict)) or (
+            pp is not None and (not isinstance(pp, dict) or "enabled" in pp)):
+        return data
+    log.info("dataset '%s' is hand-held or drone data (no level, z-up base): the planar roll/pitch prior is off; "
+             "set backend.planar_prior.enabled=true to use it", kind.value)
+    backend = dict(backend or {})
+    backend["planar_prior"] = {**(pp or {}), "enabled": False}
+    return {**data, "backend": backend}
 
 
 def _format_validation_error(err: ValidationError) -> str:

@@ -16,9 +16,9 @@ from pathlib import Path
 import cv2
 import yaml
 
+from . import io
 from .config import apply_overrides, config_from_dict
 from .errors import FrameError, WindowVOError, cli_error
-from .io import datasets
 from .io.odometry import write_odometry_csv
 from .io.sequence import StreamedSequence, write_camera_yaml
 from .io.trajectory import write_tum
@@ -70,7 +70,7 @@ def main(argv=None) -> int:
             raise WindowVOError("config must be a mapping")
         data.setdefault("output", str(a.out))
         cfg = config_from_dict(apply_overrides(data, a.overrides), base_dir=path.parent.resolve())
-        seq = datasets.load(cfg)
+        seq = io.load(cfg)
         convert(seq, Path(a.out))
     except (WindowVOError, yaml.YAMLError) as err:
         return cli_error(err, "windowvo.convert")

@@ -38,10 +38,11 @@ import cv2
 import numpy as np
 
 from ..camera import CameraModel, DistortionModel
-from ..config import CameraConfig, OdometrySourceKind, RosbagConfig
+from ..config import CameraConfig, Config, OdometrySourceKind, RosbagConfig
 from ..errors import CalibrationError, FrameError, SequenceError
 from ..geometry import R_from_quat, inv_T, make_T
 from .bagsalvage import Damage, SalvageConnection, scan_mcap, scan_ros1, scan_sqlite
+from .common import T_BASE_CAM_FORWARD, anchor, interp_poses
 from .odometry import WheelOdometry
 from .sequence import StreamedSequence, check_odometry_overlap
 from .trajectory import Trajectory
@@ -631,18 +632,16 @@ def _planar_odometry(samples: list[tuple[int, np.ndarray]], label: str) -> Wheel
 
 
 def _groundtruth_at(samples: list[tuple[int, np.ndarray]], times: np.ndarray) -> Trajectory | None:
-    from .datasets import _anchor, _interp_poses
-
     if len(samples) < 2:
         return None
     samples = sorted(samples, key=lambda s: s[0])
     t_src = np.asarray([s[0] for s in samples], float) * 1e-9
     keep = np.concatenate([[True], np.diff(t_src) > 0])
     T_src = np.stack([s[1] for s in samples])[keep]
-    T_img, inside = _interp_poses(t_src[keep], T_src, times)
+    T_img, inside = interp_poses(t_src[keep], T_src, times)
     if inside.sum() < 2:
         return None
-    return _anchor(times[inside], T_img[inside])
+    return anchor(times[inside], T_img[inside])
 
 
 # ---------------------------------------------------------------------------- the loader
@@ -706,8 +705,6 @@ def resolve_T_base_cam(rc: RosbagConfig, cam_cfg: CameraConfig | None, aux: AuxD
     if cam_cfg is not None and cam_cfg.T_base_cam is not None:
         return np.asarray(cam_cfg.T_base_cam, float).reshape(4, 4), "camera.T_base_cam from the config"
     if not has_tf_static or not aux.static_edges:
-        from .datasets import T_BASE_CAM_FORWARD
-
         warnings.append("no /tf_static and no camera.T_base_cam: camera assumed at the base origin looking forward")
         return T_BASE_CAM_FORWARD.copy(), "default (forward-looking camera at the base origin)"
     if not camera_frame:
@@ -933,3 +930,8 @@ def describe_usage(bag: BagReader, rc: RosbagConfig, cam_cfg: CameraConfig | Non
         lines.append(f"damaged bag: {bag.damage}")
     return lines
 
+
+
+def load(cfg: Config) -> StreamedSequence:
+    """The loader's entry in the dataset registry (``windowvo.io.load``)."""
+    return load_rosbag(cfg.sequence, cfg.rosbag, cfg.camera)

@@ -23,8 +23,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..config import CameraConfig
+from ..config import CameraConfig, Config
 from ..errors import FrameError, SequenceError
+from .common import anchor, camera_from_config, interp_poses
 from .odometry import read_odometry_csv
 from .sequence import StreamedSequence, check_odometry_overlap
 from .trajectory import read_tum
@@ -103,12 +104,10 @@ def beside(video: Path, name: str) -> Path | None:
 
 
 def load_video(path: Path, cam_cfg: CameraConfig | None, fps: float) -> StreamedSequence:
-    from .datasets import _anchor, _camera_from_config
-
     path = Path(path)
     if not path.is_file():
         raise SequenceError(f"video file not found: {path}")
-    camera = _camera_from_config(cam_cfg, "video")
+    camera = camera_from_config(cam_cfg, "video")
     times, how = video_timestamps(path, fps)
     warnings = [] if how == "container timestamps" else [f"video timestamps from the {how}"]
     source = VideoFrameSource(path, len(times))
@@ -126,12 +125,15 @@ def load_video(path: Path, cam_cfg: CameraConfig | None, fps: float) -> Streamed
     gt_path = beside(path, "groundtruth.txt")
     if gt_path is not None:
         gt = read_tum(gt_path)
-        from .datasets import _interp_poses
-
-        T, inside = _interp_poses(gt.timestamps, gt.T_world_base, times)
+        T, inside = interp_poses(gt.timestamps, gt.T_world_base, times)
         if inside.sum() >= 2:
-            groundtruth = _anchor(times[inside], T[inside])
+            groundtruth = anchor(times[inside], T[inside])
         else:
             warnings.append(f"{gt_path.name} does not cover the video's time span: not used")
     log.info("video %s: %d frames, timestamps from the %s", path.name, len(times), how)
     return StreamedSequence(path, [], times, camera, odometry, groundtruth, warnings, name=path.stem, source=source)
+
+
+def load(cfg: Config) -> StreamedSequence:
+    """The loader's entry in the dataset registry (``windowvo.io.load``)."""
+    return load_video(cfg.sequence, cfg.camera, cfg.fps)

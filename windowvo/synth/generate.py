@@ -15,8 +15,8 @@ import numpy as np
 
 from ..camera import CameraModel, DistortionModel
 from ..geometry import R_BASE_CAM_FORWARD, make_T, rot_x, rot_y
-from ..io.datasets import integrate_wheel_odometry
 from ..io.odometry import WheelOdometry, write_odometry_csv
+from ..io.odometry_synthesis import integrate_wheel_odometry
 from ..io.sequence import write_camera_yaml
 from ..io.trajectory import write_tum
 from .paths import PathKind, PlanarPath, make_path
