@@ -18,13 +18,13 @@ from windowvo.backend.ground import (
     off_floor,
     tilt_significant,
 )
-from windowvo.backend.smoother import SlidingWindowBackend, WheelCalibration
+from windowvo.backend.smoother import SlidingWindowBackend
 from windowvo.config import BackendConfig, GroundConfig
 from windowvo.geometry import make_T, rot_x, rotation_angle, rpy_to_R
 from windowvo.synth.features import simulate_features
 from windowvo.synth.generate import SynthSpec, WheelErrorModel, camera_for
 from windowvo.synth.paths import PathKind
-from windowvo.types import OdometryStep
+from windowvo.types import OdometryStep, WheelCalibration
 
 
 def test_robust_thresholds_are_chi_square_quantiles():

@@ -24,7 +24,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .backend.smoother import WheelCalibration
 from .config import Config, RunMode, save_config
 from .errors import SequenceError
 from .io.provider import DataProvider, SkippedFrame
@@ -32,7 +31,7 @@ from .io.sequence import Sequence
 from .io.trajectory import Trajectory, TumJournal, write_tum
 from .parallel import MAX_IN_FLIGHT, BackendWorker
 from .stream import Odometry, TrackedFrame
-from .types import BackendOutput, Frame, FrameRecord, FrontendOutput
+from .types import BackendOutput, Frame, FrameRecord, FrontendOutput, WheelCalibration
 
 log = logging.getLogger(__name__)
 

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .geometry import make_T, rot_z
+
 
 @dataclass
 class Frame:
@@ -192,3 +194,20 @@ class FrameRecord:
     floor_tilt_y_deg: float = float("nan")
     floor_tilt_se_deg: float = float("nan")
     floor_normal_learnt: bool = False
+
+
+@dataclass
+class WheelCalibration:
+    """Current estimate of the wheels' distance scale and yaw bias (rad per metre)."""
+
+    scale: float = 1.0
+    yaw_bias_per_m: float = 0.0
+    scale_sigma: float = float("nan")
+    yaw_bias_sigma: float = float("nan")
+
+    def correct(self, T_prev_cur: np.ndarray, distance: float) -> np.ndarray:
+        """Wheel step with the calibration removed: what the base probably did."""
+        yaw = float(np.arctan2(T_prev_cur[1, 0], T_prev_cur[0, 0])) - self.yaw_bias_per_m * distance
+        T = make_T(rot_z(yaw), T_prev_cur[:3, 3] / max(self.scale, 1e-3))
+        T[2, 3] = 0.0
+        return T

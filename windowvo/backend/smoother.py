@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -48,8 +47,16 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import BackendConfig, MountCalibration
 from ..errors import WindowVOError
-from ..geometry import inv_T, make_T, rot_z
-from ..types import BackendOutput, BackendStatus, FrontendOutput, GateOutcome, OdometryStep, ScaleSource
+from ..geometry import inv_T, make_T
+from ..types import (
+    BackendOutput,
+    BackendStatus,
+    FrontendOutput,
+    GateOutcome,
+    OdometryStep,
+    ScaleSource,
+    WheelCalibration,
+)
 from . import factors as fac
 from .factors import C, L, X
 from .ground import (
@@ -63,6 +70,7 @@ from .ground import (
     off_floor,
 )
 from .landmarks import LandmarkManager, reprojection_errors, reprojection_rms, triangulate_midpoint
+from .report import ScaleReport, scale_report
 
 log = logging.getLogger(__name__)
 
@@ -83,23 +91,6 @@ MIN_ROCKING_KEYFRAMES = 5
 def _floors_agree(previous: float, current: float) -> bool:
     """Two consecutive keyframes' up-to-scale floor planes (scales or heights) agree within ``FLOOR_AGREEMENT``."""
     return abs(current / previous - 1.0) <= FLOOR_AGREEMENT
-
-
-@dataclass
-class WheelCalibration:
-    """Current estimate of the wheels' distance scale and yaw bias (rad per metre)."""
-
-    scale: float = 1.0
-    yaw_bias_per_m: float = 0.0
-    scale_sigma: float = float("nan")
-    yaw_bias_sigma: float = float("nan")
-
-    def correct(self, T_prev_cur: np.ndarray, distance: float) -> np.ndarray:
-        """Wheel step with the calibration removed: what the base probably did."""
-        yaw = float(np.arctan2(T_prev_cur[1, 0], T_prev_cur[0, 0])) - self.yaw_bias_per_m * distance
-        T = make_T(rot_z(yaw), T_prev_cur[:3, 3] / max(self.scale, 1e-3))
-        T[2, 3] = 0.0
-        return T
 
 
 class SlidingWindowBackend:
@@ -204,6 +195,10 @@ class SlidingWindowBackend:
 
     def pose(self, k: int) -> np.ndarray:
         return self.kf_pose[k]
+
+    def scale_report(self) -> ScaleReport:
+        """Whether this run is metric, what fixed its scale, and the final wheel calibration (typed)."""
+        return scale_report(self)
 
     def scale_sources(self) -> list[ScaleSource]:
         """What fixes the metric scale of this run."""

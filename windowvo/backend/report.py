@@ -1,0 +1,51 @@
+"""What a back end's run says about its scale, typed: ``ScaleReport`` (summary.json, ``RunResult``).
+
+Built from a live back end in this process (:func:`scale_report`) or sent back by the pipelined mode's
+worker process; the same fields either way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from ..types import WheelCalibration
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .smoother import SlidingWindowBackend
+
+
+@dataclass(frozen=True)
+class ScaleReport:
+    """Whether a run is metric, what fixed its scale, and what the floor and the wheels did to it."""
+
+    metric: bool = False  # the scale is metric (wheels, or the ground plane at the camera height)
+    scale_sources: list[str] = field(default_factory=list)  # ScaleSource values
+    wheel_calibration: WheelCalibration | None = None  # final online estimate (with wheels)
+    # A monocular run that saw the floor only later: metric from this frame on (the trajectory before it
+    # rescaled, the causal poses before it up to scale).
+    metric_from_frame: int | None = None
+    # A monocular run whose scale drifted while the floor was out of view: keyframes where the floor was taken
+    # back at the drifted height (its ground factors then pull the scale back).
+    floor_scale_reanchors: int = 0
+    # Ground factors removed from floor landmarks that later turned out to lie off the floor (a kerb beside it).
+    floor_untied: int = 0
+    n_resets: int = 0  # back-end window resets
+
+    @classmethod
+    def lost(cls, metric: bool) -> ScaleReport:
+        """A run aborted at once in pipelined mode: what the worker knew about the scale is lost."""
+        return cls(metric=metric)
+
+
+def scale_report(be: SlidingWindowBackend) -> ScaleReport:
+    """The scale report of a back end in this process."""
+    return ScaleReport(
+        metric=bool(be.metric),
+        scale_sources=[s.value for s in be.scale_sources()],
+        wheel_calibration=be.calibration_with_sigma() if be.calibrate and be.k >= 0 else None,
+        metric_from_frame=None if be.metric_from_keyframe is None else be.kf_frame[be.metric_from_keyframe],
+        floor_scale_reanchors=be.n_scale_reanchors,
+        floor_untied=be.n_floor_untied,
+        n_resets=be.n_resets,
+    )
