@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from windowvo import bench
-from windowvo.app import load_sequence
 from windowvo.config import config_from_dict
 from windowvo.eval.metrics import evaluate
 from windowvo.io.sequence import load_native
 from windowvo.io.trajectory import read_tum
+from windowvo.runtime.job import load_sequence
 from windowvo.types import ScaleSource
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

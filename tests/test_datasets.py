@@ -11,7 +11,6 @@ import yaml
 from conftest import SHARED_DATA, make_config
 
 from windowvo import io
-from windowvo.app import run_and_report, run_job
 from windowvo.config import config_from_dict, load_config
 from windowvo.errors import CalibrationError, SequenceError
 from windowvo.eval.baselines import essential_chaining
@@ -19,6 +18,7 @@ from windowvo.eval.metrics import evaluate
 from windowvo.geometry import make_T, rpy_to_R
 from windowvo.io import euroc, kitti
 from windowvo.io.sequence import load_native
+from windowvo.runtime.job import run_and_report, run_job
 
 R_BC = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 

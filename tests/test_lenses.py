@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from conftest import make_config
 
-from windowvo.app import run_job
 from windowvo.camera import DistortionModel
 from windowvo.io.sequence import load_native
+from windowvo.runtime.job import run_job
 from windowvo.synth.generate import LENSES, LensPreset, lens_fields
 from windowvo.synth.paths import PathKind
 

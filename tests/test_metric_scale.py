@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 from conftest import SHARED_DATA, make_config
 
-from windowvo.app import floor_summary, run_and_report, run_job
 from windowvo.backend.ground import MOUNT_TILT_MIN_DEG, tilt_significant
 from windowvo.config import config_from_dict
 from windowvo.geometry import rotation_angle
+from windowvo.runtime.job import run_and_report, run_job
+from windowvo.runtime.outputs import floor_summary
 from windowvo.synth.generate import SynthSpec, WheelErrorModel, camera_for
 from windowvo.synth.paths import PathKind
 

@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
+import time
 
 import pytest
 from conftest import make_config
 
-from windowvo.app import floor_summary, run_job
 from windowvo.errors import WindowVOError
-from windowvo.parallel import BackendWorker
+from windowvo.runtime.job import run_job
+from windowvo.runtime.outputs import floor_summary
+from windowvo.runtime.parallel import BackendWorker
 from windowvo.synth.paths import PathKind
 
 
@@ -66,8 +70,10 @@ def test_pipelined_equals_sequential(short_loop, seq_factory, tmp_path, case):
 def test_a_dead_worker_is_one_clear_error():
     w = BackendWorker()
     try:
-        w._proc.kill()
-        w._proc.join(timeout=10)
+        os.kill(w.pid, signal.SIGKILL)
+        deadline = time.monotonic() + 10
+        while w.alive and time.monotonic() < deadline:
+            time.sleep(0.05)
         try:
             w.result(block=True)
         except WindowVOError as err:
@@ -79,7 +85,7 @@ def test_a_dead_worker_is_one_clear_error():
 
 
 def test_summary_says_how_it_ran(short_loop, tmp_path):
-    from windowvo.app import run_and_report
+    from windowvo.runtime.job import run_and_report
 
     run_and_report(make_config(short_loop, tmp_path / "p", run_mode="pipelined", max_frames=60))
     summary = json.loads((tmp_path / "p" / "summary.json").read_text())
@@ -90,7 +96,7 @@ def test_summary_says_how_it_ran(short_loop, tmp_path):
 _ORPHAN_SCRIPT = """
 import os, sys, time
 from windowvo.config import BackendConfig
-from windowvo.parallel import BackendWorker
+from windowvo.runtime.parallel import BackendWorker
 from windowvo.synth.features import simulate_features
 from windowvo.synth.generate import SynthSpec
 from windowvo.synth.paths import PathKind
@@ -101,7 +107,7 @@ if __name__ == "__main__":
     w.start(fs.world.camera, BackendConfig(), use_odometry=False)
     for fo in fs.keyframes[:40]:
         w.submit(fo, None)  # results never read: the worker's pipe to this process fills up
-    print(w._proc.pid, flush=True)
+    print(w.pid, flush=True)
     time.sleep(60)
 """
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 from conftest import make_config
 
-from windowvo.app import run_job
 from windowvo.io.trajectory import read_tum
+from windowvo.runtime.job import run_job
 from windowvo.synth.paths import PathKind
 
 CASES = {

@@ -14,11 +14,12 @@ import yaml
 from conftest import make_config
 from rerun.chunk import RrdReader
 
-from windowvo.app import JobReport, load_sequence
 from windowvo.errors import WindowVOError
 from windowvo.eval.metrics import evaluate
 from windowvo.io.sequence import Sequence
-from windowvo.pipeline import Pipeline, RunResult, write_outputs
+from windowvo.runtime.job import JobReport, load_sequence
+from windowvo.runtime.outputs import write_outputs
+from windowvo.runtime.pipeline import Pipeline, RunResult
 from windowvo.types import FrameEstimate
 from windowvo.viz.rerun_logger import LEGEND_ROWS_SHARE, RerunLogger, tail_starts
 

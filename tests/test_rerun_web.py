@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from conftest import make_config
 
-from windowvo.app import run_job
+from windowvo.runtime.job import run_job
 from windowvo.viz import rerun_logger as rl
 from windowvo.viz.webshot import find_chromium, namespace_problem, screenshot
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import make_config
 
-from windowvo.app import run_job
+from windowvo.runtime.job import run_job
 from windowvo.synth.generate import WheelErrorModel
 from windowvo.synth.paths import PathKind
 

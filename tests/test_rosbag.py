@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 from conftest import make_config
 
-from windowvo.app import run_job
 from windowvo.camera import DistortionModel
 from windowvo.config import OdometrySourceKind, RosbagConfig
 from windowvo.errors import CalibrationError, FrameError, SequenceError
@@ -31,6 +30,7 @@ from windowvo.io.rosbag import (
     static_chain,
 )
 from windowvo.io.sequence import load_native
+from windowvo.runtime.job import run_job
 from windowvo.synth.bagwriter import EPOCH, T_LINK_OPTICAL, BagSpec, typestore, write_bag
 from windowvo.synth.paths import PathKind
 

@@ -18,11 +18,11 @@ import pytest
 from conftest import make_config
 
 import windowvo
-from windowvo.app import run_job
 from windowvo.errors import WindowVOError
 from windowvo.eval.metrics import evaluate
 from windowvo.io.sequence import load_native
 from windowvo.io.trajectory import read_tum
+from windowvo.runtime.job import run_job
 
 
 def test_robot_loop_equals_the_file_pipeline(short_loop, tmp_path):

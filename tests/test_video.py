@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from conftest import make_config
 
-from windowvo.app import run_job
 from windowvo.io.sequence import load_native, read_camera_yaml
 from windowvo.io.video import beside, load_video
+from windowvo.runtime.job import run_job
 
 
 def _camera_section(native: Path) -> dict:

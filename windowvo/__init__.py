@@ -15,13 +15,13 @@ __all__ = ["CameraModel", "Odometry", "__version__"]
 
 if TYPE_CHECKING:  # pragma: no cover
     from .camera import CameraModel
-    from .stream import Odometry
+    from .runtime.stream import Odometry
 
 
 def __getattr__(name: str) -> Any:
     # Lazy: `import windowvo` stays cheap for the command-line tools that do not need GTSAM.
     if name == "Odometry":
-        from .stream import Odometry
+        from .runtime.stream import Odometry
 
         return Odometry
     if name == "CameraModel":

@@ -194,11 +194,11 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False,
     import logging
 
     logging.basicConfig(level=logging.ERROR)
-    from .app import run_job, wheel_only_trajectory
     from .config import config_from_dict
     from .errors import SequenceError
     from .eval.baselines import essential_chaining
     from .eval.metrics import evaluate, plot_trajectories
+    from .runtime.job import run_job, wheel_only_trajectory
     data = case_config_data(case, cache, out_root, rerun, overrides)
     out = out_root / case.name
     cfg = config_from_dict(data)
@@ -428,8 +428,8 @@ def _run_peak_rss(seq_dir: str, out: str, max_frames: int) -> dict:
     import logging
 
     logging.basicConfig(level=logging.ERROR)
-    from .app import run_job
     from .config import config_from_dict
+    from .runtime.job import run_job
 
     cfg = config_from_dict({"sequence": seq_dir, "output": out, "progress": False, "viz": {"rerun": "off"},
                             "max_frames": max_frames})
@@ -466,8 +466,8 @@ def _rerun_job(seq_dir: str, out: str, on: bool) -> dict:
 
     logging.basicConfig(level=logging.ERROR)
     t0, cpu0 = time.perf_counter(), _cpu_with_children_s()
-    from .app import run_job
     from .config import config_from_dict
+    from .runtime.job import run_job
 
     cfg = config_from_dict({"sequence": seq_dir, "output": out, "progress": False,
                             "viz": {"rerun": "save" if on else "off"}})
@@ -492,8 +492,8 @@ def _mode_job(seq_dir: str, out: str, mode: str, rerun: str) -> dict:
     import logging
 
     logging.basicConfig(level=logging.ERROR)
-    from .app import run_job
     from .config import config_from_dict
+    from .runtime.job import run_job
 
     cfg = config_from_dict({"sequence": seq_dir, "output": out, "progress": False, "run_mode": mode,
                             "viz": {"rerun": rerun}})
@@ -568,8 +568,8 @@ def _run_bag_peak_rss(bag: str, out: str) -> dict:
     import logging
 
     logging.basicConfig(level=logging.ERROR)
-    from .app import run_job
     from .config import config_from_dict
+    from .runtime.job import run_job
 
     cfg = config_from_dict({"sequence": bag, "dataset": "rosbag", "output": out, "progress": False,
                             "viz": {"rerun": "off"}})

@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.no_progress:
             cfg.progress = False
         check_output_folder(cfg.output)
-        from .app import run_and_report
+        from .runtime.job import run_and_report
 
         result = run_and_report(cfg)
     except (ConfigError, WindowVOError) as err:

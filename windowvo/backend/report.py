@@ -12,7 +12,31 @@ from typing import TYPE_CHECKING
 from ..types import WheelCalibration
 
 if TYPE_CHECKING:  # pragma: no cover
+    from ..camera import CameraModel
+    from ..config import BackendConfig
     from .smoother import SlidingWindowBackend
+
+# Smallest camera height (m) for which the ground cue makes sense.
+MIN_CAMERA_HEIGHT_M = 0.05
+
+
+@dataclass(frozen=True)
+class ScalePlan:
+    """The metric cues a back end will use, known from the camera and the config before any keyframe."""
+
+    use_odometry: bool
+    use_ground: bool  # the floor at the camera's known height
+    camera_height_m: float  # above the floor
+    calibration_wanted: bool  # the wheels are calibrated online once the floor is in view
+
+
+def plan_scale(camera: CameraModel, cfg: BackendConfig, use_odometry: bool) -> ScalePlan:
+    """The cues of a back end on this camera and config (the same rule ``SlidingWindowBackend`` applies)."""
+    g = cfg.ground
+    cam_z = float(camera.T_base_cam[2, 3])
+    height = float(g.camera_height_m) if g.camera_height_m is not None else cam_z
+    return ScalePlan(use_odometry, g.enabled and height >= MIN_CAMERA_HEIGHT_M, height,
+                     use_odometry and cfg.wheel_calibration.enabled)
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,7 @@ from ..types import BackendStatus, Frame, FrameEstimate, FrontendOutput, GateOut
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..io.sequence import Sequence
-    from ..pipeline import RunResult
+    from ..runtime.pipeline import RunResult
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""The file pipeline: data provider -> streaming odometry (``stream.Odometry``) -> outputs and viewer.
+"""The file pipeline: data provider -> streaming odometry (``runtime.stream.Odometry``) -> outputs and viewer.
 
 Runs deterministically in one thread, through the same :class:`~windowvo.stream.Odometry` object a
 robot would call in its loop (wheel samples fed up to each frame's time, then the frame). Whatever
@@ -11,8 +11,6 @@ frame up to the last keyframe.
 from __future__ import annotations
 
 import contextlib
-import csv
-import dataclasses
 import logging
 import signal
 import time
@@ -24,14 +22,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .config import Config, RunMode, save_config
-from .errors import SequenceError
-from .io.provider import DataProvider, SkippedFrame
-from .io.sequence import Sequence
-from .io.trajectory import Trajectory, TumJournal, write_tum
+from ..backend.report import ScaleReport
+from ..config import Config, RunMode
+from ..errors import SequenceError
+from ..io.provider import DataProvider, SkippedFrame
+from ..io.sequence import Sequence
+from ..io.trajectory import Trajectory, TumJournal
+from ..types import BackendOutput, Frame, FrameEstimate, FrameRecord, FrontendOutput, WheelCalibration
 from .parallel import MAX_IN_FLIGHT, BackendWorker
 from .stream import Odometry, TrackedFrame
-from .types import BackendOutput, Frame, FrameRecord, FrontendOutput, WheelCalibration
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +41,8 @@ ONLINE_HEADER = "windowvo causal estimate (each frame's pose as known at that fr
 
 @dataclass
 class RunResult:
+    """What a run computed: the trajectories, one record per frame, timings and the scale report."""
+
     n_frames: int
     n_keyframes: int
     n_skipped: int
@@ -49,28 +50,46 @@ class RunResult:
     trajectory: Trajectory
     records: list[FrameRecord]
     monocular: bool
+    scale: ScaleReport
     interrupted: bool = False
     frontend_ms: list[float] = field(default_factory=list)
     backend_ms: list[float] = field(default_factory=list)
-    n_resets: int = 0
     notes: list[str] = field(default_factory=list)
     last_frame_index: int = -1
-    metric: bool = False  # the scale is metric (wheels, or the ground plane at the camera height)
-    scale_sources: list[str] = field(default_factory=list)
-    # A monocular run that saw the floor only later: metric from this frame on (the trajectory before it
-    # rescaled, the causal poses before it up to scale).
-    metric_from_frame: int | None = None
-    # A monocular run whose scale drifted while the floor was out of view: keyframes where the floor was taken
-    # back at the drifted height (its ground factors then pull the scale back).
-    floor_scale_reanchors: int = 0
-    # Ground factors removed from floor landmarks that later turned out to lie off the floor (a kerb beside it).
-    floor_untied: int = 0
-    wheel_calibration: WheelCalibration | None = None  # final online estimate (with wheels)
     trajectory_online: Trajectory | None = None  # causal pose per frame, as a robot had it at that time
 
     @property
     def fps(self) -> float:
         return self.n_frames / self.wall_s if self.wall_s > 0 else 0.0
+
+    # The scale report's fields, read as the run's own.
+    @property
+    def metric(self) -> bool:
+        return self.scale.metric
+
+    @property
+    def scale_sources(self) -> list[str]:
+        return self.scale.scale_sources
+
+    @property
+    def wheel_calibration(self) -> WheelCalibration | None:
+        return self.scale.wheel_calibration
+
+    @property
+    def metric_from_frame(self) -> int | None:
+        return self.scale.metric_from_frame
+
+    @property
+    def floor_scale_reanchors(self) -> int:
+        return self.scale.floor_scale_reanchors
+
+    @property
+    def floor_untied(self) -> int:
+        return self.scale.floor_untied
+
+    @property
+    def n_resets(self) -> int:
+        return self.scale.n_resets
 
 
 def load_static_mask(path: Path | None, shape: tuple[int, int]) -> np.ndarray | None:
@@ -95,13 +114,14 @@ class Pipeline:
         self.progress = progress
         cam = seq.camera
         odo = seq.odometry
+        pipelined = cfg.run_mode is RunMode.PIPELINED
+        # Pipelined: the worker process builds and runs the back end; this process has none.
         self.vo = Odometry(cam, cfg, use_wheels=odo is not None,
                            static_mask=load_static_mask(cfg.frontend.mask, (cam.height, cam.width)),
-                           wheel_comment=odo.comment if odo is not None else "")
+                           wheel_comment=odo.comment if odo is not None else "", remote_backend=pipelined)
         self.use_odometry = self.vo.use_odometry
         self.frontend = self.vo.frontend
-        self.backend = self.vo.backend
-        pipelined = cfg.run_mode is RunMode.PIPELINED
+        self.n_skipped = 0
         self.provider = DataProvider(seq, cfg.checks, cfg.max_frames, cfg.frontend.mask_folder,
                                      prefetch=PREFETCH_FRAMES if pipelined else 0)
         self._wheel_next = 0  # next sample of seq.odometry to feed
@@ -152,7 +172,7 @@ class Pipeline:
         """Process every frame. Ctrl-C and SIGTERM stop the run between two frames, so the
         outputs always describe whole frames; a second Ctrl-C aborts at once."""
         t_start = time.perf_counter()
-        stop = {"signal": None}
+        stop: dict = {"signal": None}
 
         def on_signal(signum, frame):
             if stop["signal"] is not None and signum == signal.SIGINT:
@@ -164,18 +184,9 @@ class Pipeline:
             # Not in the main thread: no handlers, Ctrl-C raises as usual.
             with contextlib.suppress(ValueError):
                 previous[sig] = signal.signal(sig, on_signal)
-        n_total = len(self.provider)
         interrupted = False
         try:
-            for item in self.provider:
-                self._step(item, item.index == n_total - 1)
-                if self.progress is not None:
-                    self.progress(len(self.frames), len(self.kf_frames))
-                if stop["signal"] is not None:
-                    break
-            self._drain(block=True)  # keyframes still with the back-end process
-            if self.worker is not None:
-                self.vo.remote_report = self.worker.finish()
+            self._loop(stop)
         except KeyboardInterrupt:
             interrupted = True
         finally:
@@ -183,33 +194,44 @@ class Pipeline:
                 signal.signal(sig, handler)
             if self.worker is not None:
                 self.worker.close()
-        if interrupted and self.worker is not None and self.vo.remote_report is None:
-            # Aborted at once: what the worker knew about the scale is lost; the poses are not.
-            self.vo.remote_report = {"metric": self.use_odometry, "scale_sources": [], "wheel_calibration": None,
-                                     "metric_from_frame": None, "floor_scale_reanchors": 0, "floor_untied": 0,
-                                     "n_resets": 0}
         if stop["signal"] is not None or interrupted:
             interrupted = True
             last = self.frames[-1][0] if self.frames else -1
             log.warning("interrupted after frame %d: writing the results so far", last)
-        wall = time.perf_counter() - t_start
+        return self.result(time.perf_counter() - t_start, interrupted)
+
+    def _loop(self, stop: dict) -> None:
+        """Every frame through the front end (and the back end, or the worker), then the back end drained."""
+        n_total = len(self.provider)
+        for item in self.provider:
+            self._step(item, item.index == n_total - 1)
+            if self.progress is not None:
+                self.progress(len(self.frames), len(self.kf_frames))
+            if stop["signal"] is not None:
+                break
+        self._drain(block=True)  # keyframes still with the back-end process
+        if self.worker is not None:
+            report = self.worker.finish()
+            self.vo.remote_report = report if report is not None else ScaleReport.lost(self.use_odometry)
+
+    def result(self, wall_s: float = 0.0, interrupted: bool = True) -> RunResult:
+        """What the run has computed so far (all of it after :meth:`run`); closes the online journal."""
         traj = self.vo.smoothed_trajectory()
-        self._close_journal()
+        self.close()
         return RunResult(
             n_frames=len(self.frames),
             n_keyframes=len(self.kf_frames),
-            n_skipped=sum(1 for r in self.records if r.note.startswith("skipped")),
-            wall_s=wall,
+            n_skipped=self.n_skipped,
+            wall_s=wall_s,
             trajectory=traj,
             records=self.records,
             monocular=not self.use_odometry,
+            scale=self.vo.scale_report(),
             interrupted=interrupted,
             frontend_ms=[r.frontend_ms for r in self.records if r.frontend_ms > 0],
             backend_ms=[r.backend_ms for r in self.records if r.is_keyframe],
-            n_resets=self.vo.n_resets,
             notes=self.notes,
             last_frame_index=self.frames[-1][0] if self.frames else -1,
-            **self.vo.scale_report(),
             trajectory_online=self.vo.online_trajectory(),
         )
 
@@ -250,8 +272,8 @@ class Pipeline:
     def _finish(self, tracked: TrackedFrame, frame: Frame | None, bo: BackendOutput | None) -> None:
         est = self.vo.resolve(tracked, bo)
         if est.frontend is None:
-            self.records.append(FrameRecord(est.frame_index, est.timestamp, 0, 0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, False,
-                                            "", "", "", 0, float("nan"), 0.0, 0.0, note=est.note))
+            self.n_skipped += int(est.skipped)
+            self.records.append(skipped_record(est))
         else:
             # The frame counts as processed only once everything about it is known (an interrupt
             # in the middle leaves frames and records in step).
@@ -263,7 +285,8 @@ class Pipeline:
             if est.is_keyframe:
                 self._journal.flush()
 
-    def _close_journal(self) -> None:
+    def close(self) -> None:
+        """Close the online journal (``trajectory_online.txt``); the final outputs are written by the caller."""
         if self._journal is not None:
             self._journal.close()
             self._journal = None
@@ -302,28 +325,9 @@ class Pipeline:
         )
 
 
-def write_outputs(cfg: Config, result: RunResult, out: Path) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    header = "T_world_base, world = base at the first frame (TUM: t tx ty tz qx qy qz qw)"
-    if not result.metric:
-        header += "\nmonocular run: translation is up to scale"
-    elif result.scale_sources:
-        header += "\nmetric scale from: " + ", ".join(result.scale_sources)
-    write_tum(out / "trajectory.txt", result.trajectory.timestamps, result.trajectory.T_world_base,
-              header="windowvo estimate (fixed-lag smoothed): " + header)
-    if result.trajectory_online is not None and len(result.trajectory_online):
-        write_tum(out / "trajectory_online.txt", result.trajectory_online.timestamps,
-                  result.trajectory_online.T_world_base, header=ONLINE_HEADER + ": " + header)
-    write_stats(out / "stats.csv", result.records)
-    save_config(cfg, out / "config_resolved.yaml")
-
-
-def write_stats(path: Path, records: list[FrameRecord]) -> None:
-    fields = [f.name for f in dataclasses.fields(FrameRecord)]
-    tmp = path.with_suffix(".csv.tmp")
-    with tmp.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(fields)
-        for r in records:
-            w.writerow([getattr(r, f) for f in fields])
-    tmp.replace(path)
+def skipped_record(est: FrameEstimate) -> FrameRecord:
+    """The stats row of a frame that never reached the front end (black, duplicate, unreadable)."""
+    return FrameRecord(frame_index=est.frame_index, timestamp=est.timestamp, n_tracked=0, n_inliers=0, n_detected=0,
+                       parallax_px=0.0, rot_comp_parallax_px=0.0, inlier_ratio=0.0, cheirality_ratio=0.0, spread=0.0,
+                       is_keyframe=False, keyframe_reason="", gate="", backend_status="", n_landmarks=0,
+                       reprojection_rms_px=float("nan"), frontend_ms=0.0, backend_ms=0.0, note=est.note)

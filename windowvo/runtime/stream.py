@@ -7,7 +7,7 @@
     est = vo.process(t, image)                     # FrameEstimate: T_world_base at t, status, keyframe flag, ...
     vo.smoothed_trajectory()                       # the fixed-lag smoothed poses so far
 
-One code path: the file pipeline (``pipeline.py``) drives this same object, feeding each
+One code path: the file pipeline (``runtime/pipeline.py``) drives this same object, feeding each
 frame's wheel samples just before the frame, so ``trajectory_online.txt`` is exactly what a robot
 calling :meth:`Odometry.process` in its loop would have had.
 
@@ -26,16 +26,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .backend.smoother import SlidingWindowBackend
-from .camera import CameraModel
-from .config import Config, config_from_dict, load_config
-from .errors import WindowVOError
-from .frontend.frontend import Frontend
-from .frontend.tracker import resolve_detection_order
-from .geometry import interpolate_T
-from .io.odometry import WheelBuffer, WheelOdometry
-from .io.trajectory import Trajectory
-from .types import BackendOutput, BackendStatus, Frame, FrameEstimate, FrontendOutput, OdometryStep
+from ..backend.report import ScaleReport, plan_scale
+from ..backend.smoother import SlidingWindowBackend
+from ..camera import CameraModel
+from ..config import Config, config_from_dict, load_config
+from ..errors import WindowVOError
+from ..frontend.frontend import Frontend
+from ..frontend.tracker import resolve_detection_order
+from ..geometry import interpolate_T
+from ..io.odometry import WheelBuffer, WheelOdometry
+from ..io.trajectory import Trajectory
+from ..types import BackendOutput, BackendStatus, Frame, FrameEstimate, FrontendOutput, OdometryStep
 
 log = logging.getLogger(__name__)
 
@@ -63,16 +64,25 @@ def default_config() -> Config:
 
 
 class Odometry:
-    """Visual-wheel odometry fed one frame (and any number of wheel samples) at a time."""
+    """Visual-wheel odometry fed one frame (and any number of wheel samples) at a time.
+
+    It runs its own back end (``backend``, built here when not given) unless ``remote_backend``: then the
+    caller runs the keyframes elsewhere (the pipelined mode's worker process builds that back end) and hands
+    each result to :meth:`resolve`, and the final :class:`ScaleReport` to :attr:`remote_report`."""
 
     def __init__(self, camera: CameraModel, config: Config | None = None, use_wheels: bool = True,
-                 static_mask: np.ndarray | None = None, wheel_comment: str = ""):
+                 static_mask: np.ndarray | None = None, wheel_comment: str = "",
+                 backend: SlidingWindowBackend | None = None, remote_backend: bool = False):
         cfg = config if config is not None else default_config()
         self.cfg = cfg
         self.camera = camera
         self.use_odometry = bool(use_wheels and cfg.backend.use_odometry)
-        self.backend = SlidingWindowBackend(camera, cfg.backend, self.use_odometry)
-        floor_only = self.backend.use_ground and not self.use_odometry  # the floor is the only scale source
+        self.plan = plan_scale(camera, cfg.backend, self.use_odometry)
+        self.backend: SlidingWindowBackend | None = None
+        if not remote_backend:
+            self.backend = backend if backend is not None else SlidingWindowBackend(camera, cfg.backend,
+                                                                                    self.use_odometry)
+        floor_only = self.plan.use_ground and not self.use_odometry  # the floor is the only scale source
         order = resolve_detection_order(cfg.frontend.detection_order, floor_only)
         self.frontend = Frontend(camera, cfg.frontend.model_copy(update={"detection_order": order}), cfg.keyframes,
                                  cfg.gates, static_mask)
@@ -87,7 +97,7 @@ class Odometry:
         self.notes: list[str] = []
         self._n_tracked = 0
         self._last_t: float | None = None
-        self.remote_report: dict | None = None  # scale report of a back end run elsewhere (parallel.py)
+        self.remote_report: ScaleReport | None = None  # scale report of a back end run elsewhere (parallel.py)
 
     @classmethod
     def from_config(cls, config: Config | str | Path, camera: CameraModel, use_wheels: bool = True) -> Odometry:
@@ -115,6 +125,8 @@ class Odometry:
         """The back end's result for a keyframe, in this process (None for other frames)."""
         if tracked.frontend is None or not tracked.frontend.is_keyframe:
             return None
+        if self.backend is None:
+            raise WindowVOError("this Odometry has no back end of its own (remote_backend=True)")
         return self.backend.add_keyframe(tracked.frontend, tracked.odom)
 
     def skip(self, index: int, t: float, reason: str) -> FrameEstimate:
@@ -244,28 +256,14 @@ class Odometry:
             poses.append(T)
         return Trajectory(np.asarray(ts), np.stack(poses))
 
-    def scale_report(self) -> dict:
-        """Whether the run is metric, what fixed its scale, and the final wheel calibration."""
+    def scale_report(self) -> ScaleReport:
+        """Whether the run is metric, what fixed its scale, the final wheel calibration, the resets."""
         if self.remote_report is not None:
-            return {k: v for k, v in self.remote_report.items() if k != "n_resets"}
-        return backend_scale_report(self.backend)
-
-    @property
-    def n_resets(self) -> int:
-        return int(self.remote_report["n_resets"]) if self.remote_report is not None else self.backend.n_resets
+            return self.remote_report
+        if self.backend is None:
+            return ScaleReport.lost(self.use_odometry)
+        return self.backend.scale_report()
 
 
 def _join_notes(note: str, more: str) -> str:
     return f"{note}; {more}" if note else more
-
-
-def backend_scale_report(be: SlidingWindowBackend) -> dict:
-    """Whether a back end's run is metric, what fixed its scale, and its final wheel calibration."""
-    return {
-        "metric": bool(be.metric),
-        "scale_sources": [s.value for s in be.scale_sources()],
-        "wheel_calibration": be.calibration_with_sigma() if be.calibrate and be.k >= 0 else None,
-        "metric_from_frame": None if be.metric_from_keyframe is None else be.kf_frame[be.metric_from_keyframe],
-        "floor_scale_reanchors": be.n_scale_reanchors,
-        "floor_untied": be.n_floor_untied,
-    }

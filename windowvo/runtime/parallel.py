@@ -12,6 +12,7 @@ the inputs of the sequential mode, in the same order, so the trajectories are th
 
 from __future__ import annotations
 
+import enum
 import logging
 import multiprocessing as mp
 import os
@@ -19,10 +20,11 @@ import queue
 import signal
 from collections import deque
 
-from .camera import CameraModel
-from .config import BackendConfig
-from .errors import WindowVOError
-from .types import BackendOutput, FrontendOutput, OdometryStep
+from ..backend.report import ScaleReport
+from ..camera import CameraModel
+from ..config import BackendConfig
+from ..errors import WindowVOError
+from ..types import BackendOutput, FrontendOutput, OdometryStep
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +36,14 @@ POLL_S = 1.0
 _NOTHING = object()  # no message within POLL_S
 
 
+class Reply(str, enum.Enum):
+    """What the worker sends back with each message."""
+
+    OK = "ok"  # a keyframe's BackendOutput
+    ERROR = "error"  # the back end failed (the message text); the worker ends
+    DONE = "done"  # the final ScaleReport (or None: no keyframe came); the worker ends
+
+
 def _serve(inbox, outbox, parent_pid: int) -> None:
     """Worker loop: the first message sets up one back end (camera, config, wheels), then keyframes until
     ``None`` arrives; then its final report. It also ends when the main process is gone (killed with
@@ -42,8 +52,7 @@ def _serve(inbox, outbox, parent_pid: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    from .backend.smoother import SlidingWindowBackend
-    from .stream import backend_scale_report
+    from ..backend.smoother import SlidingWindowBackend
 
     be = None
     while True:
@@ -59,8 +68,7 @@ def _serve(inbox, outbox, parent_pid: int) -> None:
         if msg is _NOTHING:
             continue
         if msg is None:
-            report = {**backend_scale_report(be), "n_resets": be.n_resets} if be is not None else None
-            outbox.put(("done", report))
+            outbox.put((Reply.DONE, be.scale_report() if be is not None else None))
             return
         if be is None:
             camera, cfg, use_odometry = msg
@@ -68,9 +76,9 @@ def _serve(inbox, outbox, parent_pid: int) -> None:
             continue
         fo, odom = msg
         try:
-            outbox.put(("ok", be.add_keyframe(fo, odom)))
+            outbox.put((Reply.OK, be.add_keyframe(fo, odom)))
         except WindowVOError as err:
-            outbox.put(("error", str(err)))
+            outbox.put((Reply.ERROR, str(err)))
             return
 
 
@@ -86,7 +94,7 @@ class BackendWorker:
                                  name="windowvo-backend", daemon=True)
         self._proc.start()
         self.in_flight = 0
-        self.report: dict | None = None
+        self.report: ScaleReport | None = None
         self._ready: deque[BackendOutput] = deque()
 
     def start(self, camera: CameraModel, cfg: BackendConfig, use_odometry: bool) -> None:
@@ -96,7 +104,7 @@ class BackendWorker:
         self._inbox.put((fo, odom))
         self.in_flight += 1
 
-    def _receive(self, block: bool) -> tuple[str, object] | None:
+    def _receive(self, block: bool) -> tuple[Reply, object] | None:
         while True:
             try:
                 return self._outbox.get(block=block, timeout=POLL_S if block else None)
@@ -116,28 +124,38 @@ class BackendWorker:
             if msg is None:
                 return None
             kind, payload = msg
-            if kind == "error":
+            if kind is Reply.ERROR:
                 raise WindowVOError(str(payload))
-            assert kind == "ok" and isinstance(payload, BackendOutput)
+            assert kind is Reply.OK and isinstance(payload, BackendOutput)
             self._ready.append(payload)
         self.in_flight -= 1
         return self._ready.popleft()
 
-    def finish(self) -> dict:
-        """Wait for the worker to end; returns its scale report (and ``n_resets``)."""
+    def finish(self) -> ScaleReport | None:
+        """Wait for the worker to end; returns its scale report (None: it never had a keyframe)."""
         self._inbox.put(None)
         while True:
             msg = self._receive(block=True)
             assert msg is not None
             kind, payload = msg
-            if kind == "done":
-                assert isinstance(payload, dict)
+            if kind is Reply.DONE:
+                assert payload is None or isinstance(payload, ScaleReport)
                 self.report = payload
                 break
-            if kind == "error":
+            if kind is Reply.ERROR:
                 raise WindowVOError(str(payload))
         self._proc.join(timeout=10)
         return self.report
+
+    @property
+    def pid(self) -> int | None:
+        """The worker process's id."""
+        return self._proc.pid
+
+    @property
+    def alive(self) -> bool:
+        """The worker process is running."""
+        return self._proc.is_alive()
 
     def close(self) -> None:
         """Stop the worker whatever state it is in (errors, interrupts). It ignores SIGTERM (the main

@@ -1,0 +1,154 @@
+"""Run a configured job end to end: load, process, write, evaluate, summarise.
+
+The command line (``windowvo.cli.run``) calls :func:`run_and_report`; the benchmark and the tests call
+:func:`run_job` to get the numbers (a :class:`JobReport`) without printing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import Config, RerunMode, RunMode
+from ..errors import WindowVOError
+from ..eval.metrics import AccuracyReport
+from ..io.sequence import Sequence
+from ..io.trajectory import Trajectory
+from .outputs import summary_dict, summary_lines, write_outputs, write_summary
+from .parallel import BackendWorker
+from .pipeline import Pipeline, RunResult
+
+log = logging.getLogger("windowvo")
+
+
+@dataclass
+class JobReport:
+    result: RunResult
+    sequence: Sequence
+    accuracy: AccuracyReport | None = None  # the smoothed trajectory
+    wheel_accuracy: AccuracyReport | None = None
+    online_accuracy: AccuracyReport | None = None  # the causal trajectory
+
+
+def load_sequence(cfg: Config) -> Sequence:
+    from .. import io
+
+    return io.load(cfg)
+
+
+def wheel_only_trajectory(seq: Sequence, timestamps: np.ndarray) -> Trajectory | None:
+    """Wheel odometry alone at the given times, anchored at the first one (world = first base)."""
+    odo = seq.odometry
+    if odo is None or len(timestamps) == 0:
+        return None
+    poses = np.stack([odo.delta(float(timestamps[0]), float(t)) for t in timestamps])
+    return Trajectory(np.asarray(timestamps, float), poses)
+
+
+def make_viewer(cfg: Config, seq: Sequence):
+    if cfg.viz.rerun is RerunMode.OFF:
+        return None
+    from ..viz.rerun_logger import RerunLogger
+
+    return RerunLogger(cfg, seq)
+
+
+def run_job(cfg: Config, progress=None) -> JobReport:
+    # Pipelined: spawn the back-end process first, so its start overlaps with loading the sequence.
+    worker = BackendWorker() if cfg.run_mode is RunMode.PIPELINED else None
+    try:
+        return _run_job(cfg, progress, worker)
+    finally:
+        if worker is not None:
+            worker.close()
+
+
+def _run_job(cfg: Config, progress, worker: BackendWorker | None) -> JobReport:
+    seq = load_sequence(cfg)
+    for w in seq.warnings:
+        log.warning("%s", w)
+    viewer = make_viewer(cfg, seq)
+    pipe = Pipeline(cfg, seq, viewer=viewer, progress=progress, worker=worker)
+    plan = pipe.vo.plan
+    ground = (f"the floor at the camera height ({plan.camera_height_m:.3f} m above it)" if plan.use_ground
+              else "no ground cue")
+    if pipe.use_odometry:
+        label = " (synthetic)" if seq.odometry is not None and seq.odometry.synthetic else ""
+        calib = ", calibrated online once the floor is in view" if plan.calibration_wanted else ""
+        log.info("scale sources: wheel odometry%s%s; %s", label, calib, ground)
+    elif plan.use_ground:
+        log.info("no wheel odometry: monocular run made metric by %s", ground)
+    else:
+        log.warning("no wheel odometry and no ground cue: monocular run, the trajectory is up to scale")
+    result = None
+    try:
+        result = pipe.run()
+    finally:
+        if result is None:  # an unexpected error: still write what we have
+            try:
+                write_outputs(cfg, pipe.result(interrupted=True), cfg.output)
+                log.error("run failed after frame %d; partial results written to %s",
+                          pipe.frames[-1][0] if pipe.frames else -1, cfg.output)
+            except Exception:  # pragma: no cover - best effort only
+                pass
+    write_outputs(cfg, result, cfg.output)
+    if result.n_keyframes == 0 and not result.interrupted:
+        if viewer is not None:
+            viewer.finish(result, None)
+        raise WindowVOError(
+            f"no keyframe in {result.n_frames} frames: no trackable features (images black, uniform or fully "
+            f"masked?); stats.csv in {cfg.output} says what each frame had")
+    report = JobReport(result, seq)
+    if seq.groundtruth is not None and len(result.trajectory) >= 3:
+        from ..eval.metrics import evaluate
+
+        try:
+            report.accuracy = evaluate(seq.groundtruth, result.trajectory, monocular=not result.metric)
+            if result.trajectory_online is not None and len(result.trajectory_online) >= 3:
+                report.online_accuracy = evaluate(seq.groundtruth, result.trajectory_online,
+                                                  monocular=not result.metric)
+            wheel = wheel_only_trajectory(seq, result.trajectory.timestamps)
+            if wheel is not None:
+                report.wheel_accuracy = evaluate(seq.groundtruth, wheel)
+        except WindowVOError as err:
+            log.warning("evaluation skipped: %s", err)
+    if viewer is not None:
+        viewer.finish(result, report)
+    return report
+
+
+def _progress_bar(cfg: Config, total: int):
+    if not cfg.progress or not sys.stderr.isatty():
+        return None, None
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, unit="frame", dynamic_ncols=True, file=sys.stderr)
+
+    def update(n_frames: int, n_kf: int) -> None:
+        bar.n = n_frames
+        bar.set_postfix(keyframes=n_kf, refresh=False)
+        bar.refresh() if n_frames % 10 == 0 else None
+
+    return bar, update
+
+
+def run_and_report(cfg: Config) -> RunResult:
+    """Run a job with a progress bar, write ``summary.json`` and print the console summary."""
+    seq_len_hint = None
+    with contextlib.suppress(OSError):
+        seq_len_hint = len(list((cfg.sequence / "images").iterdir())) if (cfg.sequence / "images").is_dir() else None
+    total = min(seq_len_hint or 0, cfg.max_frames or 10**9) or None
+    bar, update = _progress_bar(cfg, total or 0)
+    try:
+        report = run_job(cfg, progress=update)
+    finally:
+        if bar is not None:
+            bar.close()
+    summary = summary_dict(report, cfg)
+    write_summary(summary, cfg.output)
+    print("\n".join(summary_lines(report, summary, cfg.output)))
+    return report.result

@@ -1,0 +1,162 @@
+"""What a run leaves on disk and prints: trajectories, ``stats.csv``, the resolved config, ``summary.json``
+and the console summary. Everything here is built from a :class:`~windowvo.runtime.job.JobReport`."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..backend.ground import levelled_mount, normal_from_tilt_deg, tilt_significant
+from ..config import Config, save_config
+from ..io.trajectory import write_tum
+from ..types import FrameRecord
+from .pipeline import ONLINE_HEADER, RunResult
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .job import JobReport
+
+log = logging.getLogger("windowvo")
+
+
+def write_outputs(cfg: Config, result: RunResult, out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    header = "T_world_base, world = base at the first frame (TUM: t tx ty tz qx qy qz qw)"
+    if not result.metric:
+        header += "\nmonocular run: translation is up to scale"
+    elif result.scale_sources:
+        header += "\nmetric scale from: " + ", ".join(result.scale_sources)
+    write_tum(out / "trajectory.txt", result.trajectory.timestamps, result.trajectory.T_world_base,
+              header="windowvo estimate (fixed-lag smoothed): " + header)
+    if result.trajectory_online is not None and len(result.trajectory_online):
+        write_tum(out / "trajectory_online.txt", result.trajectory_online.timestamps,
+                  result.trajectory_online.T_world_base, header=ONLINE_HEADER + ": " + header)
+    write_stats(out / "stats.csv", result.records)
+    save_config(cfg, out / "config_resolved.yaml")
+
+
+def write_stats(path: Path, records: list[FrameRecord]) -> None:
+    fields = [f.name for f in dataclasses.fields(FrameRecord)]
+    tmp = path.with_suffix(".csv.tmp")
+    with tmp.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(fields)
+        for r in records:
+            w.writerow([getattr(r, f) for f in fields])
+    tmp.replace(path)
+
+
+def floor_summary(records: list[FrameRecord], T_base_cam: np.ndarray | None = None) -> dict:
+    """What the run learnt about the floor: how much the base rocked (median over keyframes of
+    ``base_rocking_deg``, None when never judged), at how many keyframes floor points were tied to the floor in
+    a level frame because of it, the floor's tilt in the base frame at the end (None: too few floor fits), at how
+    many keyframes the learnt normal was used, and ``T_base_cam`` corrected by that tilt (when given)."""
+    rocking = [rec.base_rocking_deg for rec in records if rec.is_keyframe and np.isfinite(rec.base_rocking_deg)]
+    tilts = [(rec.floor_tilt_x_deg, rec.floor_tilt_y_deg, rec.floor_tilt_se_deg) for rec in records
+             if rec.is_keyframe and np.isfinite(rec.floor_tilt_x_deg)]
+    return {"base_rocking_deg_median": round(float(np.median(rocking)), 4) if rocking else None,
+            "level_frame_keyframes": sum(1 for rec in records if rec.level_frame),
+            "floor_tilt_deg": None if not tilts else [round(float(v), 3) for v in tilts[-1][:2]],
+            "floor_tilt_se_deg": None if not tilts else round(float(tilts[-1][2]), 3),
+            "floor_normal_learnt_keyframes": sum(1 for rec in records if rec.floor_normal_learnt),
+            "T_base_cam_levelled": None if not tilts or T_base_cam is None else [
+                round(float(v), 6) for v in levelled_mount(T_base_cam, normal_from_tilt_deg(*tilts[-1][:2])).ravel()]}
+
+
+def summary_dict(report: JobReport, cfg: Config) -> dict:
+    """The content of ``summary.json``."""
+    r = report.result
+    cal = r.wheel_calibration
+    return {
+        "frames": r.n_frames,
+        "keyframes": r.n_keyframes,
+        "skipped_frames": r.n_skipped,
+        "wall_s": round(r.wall_s, 3),
+        "fps": round(r.fps, 2),
+        "frontend_ms_mean": round(float(np.mean(r.frontend_ms)), 3) if r.frontend_ms else None,
+        "backend_ms_median": round(float(np.median(r.backend_ms)), 3) if r.backend_ms else None,
+        "backend_resets": r.n_resets,
+        "run_mode": cfg.run_mode.value,
+        "monocular": r.monocular,
+        "metric": r.metric,
+        "scale_sources": r.scale_sources,
+        "metric_from_frame": r.metric_from_frame,
+        "floor_scale_reanchors": r.floor_scale_reanchors,
+        "floor_untied": r.floor_untied,
+        "wheel_calibration": None if cal is None else {
+            "scale": round(cal.scale, 5), "scale_sigma": round(cal.scale_sigma, 5),
+            "yaw_bias_per_m": round(cal.yaw_bias_per_m, 6), "yaw_bias_sigma": round(cal.yaw_bias_sigma, 6)},
+        "odometry_synthetic": bool(report.sequence.odometry is not None and report.sequence.odometry.synthetic),
+        "interrupted": r.interrupted,
+        **floor_summary(r.records, report.sequence.camera.T_base_cam),
+        "accuracy": report.accuracy.as_dict() if report.accuracy is not None else None,
+        "accuracy_online": report.online_accuracy.as_dict() if report.online_accuracy is not None else None,
+        "wheel_only_accuracy": report.wheel_accuracy.as_dict() if report.wheel_accuracy is not None else None,
+    }
+
+
+def write_summary(summary: dict, out: Path) -> None:
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+
+
+def _scale_line(r: RunResult, summary: dict) -> str:
+    if not r.metric:
+        return "monocular run (no wheel odometry, no floor at the camera height): the trajectory is up to scale"
+    synthetic = " (wheels synthetic, see odometry.csv header)" if summary["odometry_synthetic"] else ""
+    late = (f", from frame {r.metric_from_frame} on (the floor came into view there; the trajectory before it "
+            f"is rescaled)" if r.metric_from_frame is not None else "")
+    n_re = r.floor_scale_reanchors
+    drift = f"; the floor taken back after a scale drift at {n_re} keyframe{'s' * (n_re != 1)}" if n_re else ""
+    return "metric scale from: " + ", ".join(r.scale_sources) + synthetic + late + drift
+
+
+def _floor_line(r: RunResult, summary: dict) -> str | None:
+    floor = []
+    if summary["base_rocking_deg_median"] is not None:
+        floor.append(f"base rocking {summary['base_rocking_deg_median']:.2f} deg between keyframes (level frame at "
+                     f"{summary['level_frame_keyframes']} keyframes)")
+    if summary["floor_tilt_deg"] is not None:
+        tx, ty = summary["floor_tilt_deg"]
+        n_used = summary["floor_normal_learnt_keyframes"]
+        used = f"used at {n_used} keyframes" if n_used else "not used"
+        se = summary["floor_tilt_se_deg"]
+        floor.append(f"tilted {np.hypot(tx, ty):.2f} ± {se:.2f} deg in the base frame ({tx:+.2f} x, {ty:+.2f} y; "
+                     f"{used})")
+        significant = tilt_significant(float(np.hypot(tx, ty)), se)
+        if significant and not n_used:
+            log.warning("the floor is tilted %.2f deg in the base frame: T_base_cam's pitch or roll looks off by about "
+                        "that, which biases the ground cue's scale (0.5 deg: about 3%%); correct T_base_cam (summary.json: "
+                        "T_base_cam_levelled) or set backend.ground.mount_calibration: auto or on", np.hypot(tx, ty))
+        elif significant:
+            floor.append("T_base_cam levelled by it in summary.json (T_base_cam_levelled)")
+    if r.floor_untied:
+        floor.append(f"{r.floor_untied} floor landmarks found off it in later views and untied (a kerb or mat beside "
+                     f"it; backend.ground.untie_sigmas)")
+    return "floor: " + "; ".join(floor) if floor else None
+
+
+def summary_lines(report: JobReport, summary: dict, out: Path) -> list[str]:
+    """The console summary of a run (one line per topic)."""
+    r = report.result
+    lines = [f"windowvo: {r.n_frames} frames ({r.n_skipped} skipped), {r.n_keyframes} keyframes, "
+             f"{r.wall_s:.1f} s, {r.fps:.1f} fps" + (" [interrupted]" if r.interrupted else ""), _scale_line(r, summary)]
+    if r.wheel_calibration is not None:
+        c = r.wheel_calibration
+        lines.append(f"wheel calibration: scale {c.scale:.4f} ± {c.scale_sigma:.4f}, "
+                     f"yaw bias {c.yaw_bias_per_m * 1000:.2f} ± {c.yaw_bias_sigma * 1000:.2f} mrad/m")
+    floor = _floor_line(r, summary)
+    if floor is not None:
+        lines.append(floor)
+    if report.accuracy is not None:
+        lines.append("accuracy (smoothed): " + report.accuracy.summary(metric=r.metric))
+    if report.online_accuracy is not None:
+        lines.append("accuracy (causal, online): " + report.online_accuracy.summary(metric=r.metric))
+    if report.wheel_accuracy is not None:
+        lines.append(f"wheel odometry alone: ATE SE(3) {report.wheel_accuracy.ate_se3_rmse_m:.3f} m")
+    lines.append(f"outputs: {out}")
+    return lines
