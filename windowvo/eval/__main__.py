@@ -13,8 +13,6 @@ import os
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from ..errors import SequenceError, WindowVOError, cli_error
 from ..io.trajectory import (
     KITTI_DEFAULT_DT_S,
