@@ -105,7 +105,8 @@ def _text(gt: LoadedTrajectory, est: LoadedTrajectory, rep: AccuracyReport,
     lines = [f"ground truth: {gt.describe()}", f"estimate: {est.describe()}", rep.summary()]
     where = "" if frame is KittiFrame.BASE else " (camera 0 poses)"
     for s, k in kitti.items():
-        lines.append(k.summary() + where if k is not None else f"{s.label}: n/a (monocular, scale unknown)")
+        line = k.summary() if k is not None else f"{s.label}: n/a (monocular, scale unknown)"
+        lines.append(line.replace(s.label, s.label + where, 1))
     return "\n".join(lines)
 
 
