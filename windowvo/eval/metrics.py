@@ -69,6 +69,24 @@ def _to_evo(traj: Trajectory) -> PoseTrajectory3D:
     return PoseTrajectory3D(poses_se3=[T.copy() for T in traj.T_world_base], timestamps=traj.timestamps.copy())
 
 
+def _associate_evo(groundtruth: Trajectory, estimate: Trajectory,
+                   max_time_diff: float) -> tuple[PoseTrajectory3D, PoseTrajectory3D]:
+    try:
+        return evo_sync.associate_trajectories(_to_evo(groundtruth), _to_evo(estimate), max_diff=max_time_diff)
+    except Exception as err:  # evo raises its own SyncException
+        raise WindowVOError(f"cannot associate estimate with ground truth: {err}") from None
+
+
+def associate(groundtruth: Trajectory, estimate: Trajectory,
+              max_time_diff: float = 0.02) -> tuple[Trajectory, Trajectory]:
+    """The poses of both trajectories matched by timestamp (evo's association, as :func:`evaluate`
+    uses): two trajectories of equal length, pose i of one matched with pose i of the other.
+    Raises :class:`WindowVOError` when nothing matches."""
+    ref, est = _associate_evo(groundtruth, estimate, max_time_diff)
+    return (Trajectory(np.asarray(ref.timestamps, float), np.stack(ref.poses_se3)),
+            Trajectory(np.asarray(est.timestamps, float), np.stack(est.poses_se3)))
+
+
 def evaluate(groundtruth: Trajectory, estimate: Trajectory, max_time_diff: float = 0.02, *,
              monocular: bool = False) -> AccuracyReport:
     """Accuracy of ``estimate`` against ``groundtruth`` (both ``T_world_base``).
@@ -76,12 +94,7 @@ def evaluate(groundtruth: Trajectory, estimate: Trajectory, max_time_diff: float
     ``monocular``: the estimate is up to scale, so RPE and end drift are measured after
     applying the Sim(3) alignment's scale (see :class:`AccuracyReport`).
     """
-    ref = _to_evo(groundtruth)
-    est = _to_evo(estimate)
-    try:
-        ref, est = evo_sync.associate_trajectories(ref, est, max_diff=max_time_diff)
-    except Exception as err:  # evo raises its own SyncException
-        raise WindowVOError(f"cannot associate estimate with ground truth: {err}") from None
+    ref, est = _associate_evo(groundtruth, estimate, max_time_diff)
     if ref.num_poses < 3:
         raise WindowVOError("fewer than 3 poses in common between estimate and ground truth")
     path_len = float(ref.path_length)
