@@ -7,7 +7,8 @@ or unreadable. ``scan_*`` yields :class:`SalvageRecord` items: connection defini
 they appear, then messages (record time in ns and the serialised bytes).
 
 A ROS 2 SQLite bag (``.db3``) is read row by row in insertion order until SQLite reports
-the damage (``scan_sqlite``); a database whose schema itself is damaged yields nothing.
+the damage (``scan_sqlite``), also when the file is cut off (SQLite is opened leniently, see
+``_sqlite_connect``); a database whose schema itself is damaged yields nothing.
 """
 
 from __future__ import annotations
@@ -308,30 +309,103 @@ def scan_mcap(path: Path) -> Iterator[SalvageRecord]:
 # ---------------------------------------------------------------------------- SQLite (ROS 2 .db3)
 
 
-def scan_sqlite(path: Path) -> Iterator[SalvageRecord]:
-    """Topics, then messages in insertion order, up to the first row SQLite cannot read."""
+def _sqlite_cut_page(path: Path) -> tuple[str, int | None]:
+    """How the file falls short of its header's page count, and the number of its cut-off last page.
+
+    SQLite reads a cut-off page as if its missing bytes were zeros, so rows stored on it (or data
+    running into it) come back silently zeroed. None when the file ends on a page boundary.
+    """
+    with open(path, "rb") as fh:
+        head = fh.read(100)
+        size = fh.seek(0, 2)
+    if len(head) < 100 or not head.startswith(b"SQLite format 3\0"):
+        raise Damage("not an SQLite database (bad header)")
+    page = struct.unpack_from(">H", head, 16)[0]
+    page = 65536 if page == 1 else page
+    pages = struct.unpack_from(">I", head, 28)[0]
+    note = f"the file holds {size / page:.1f} of its {pages} pages" if size < pages * page else ""
+    return note, (size // page + 1 if size % page else None)
+
+
+def _sqlite_first_row_on(con: sqlite3.Connection, page_no: int) -> int | None:
+    """Position (in rowid order) of the first message row with content on page ``page_no``.
+
+    Walks the messages table's pages with SQLite's ``dbstat`` table (leaves in rowid order, each
+    followed by its cells' overflow pages, named ``<leaf path><cell>+<n>``). None when no row is
+    stored there or ``dbstat`` is missing from this SQLite build; the rows walked so far when the
+    walk stops at a malformed page.
+    """
+    first = 0  # position of the current leaf's first row
+    count = 0
+    try:
+        con.execute("SELECT 1 FROM dbstat LIMIT 0")
+    except sqlite3.Error:
+        return None
+    try:
+        for pageno, path, kind, ncell in con.execute(
+                "SELECT pageno, path, pagetype, ncell FROM dbstat WHERE name = 'messages'"):
+            if kind == "leaf":
+                first, count = count, count + int(ncell)
+                if pageno == page_no:
+                    return first
+            elif kind == "overflow" and pageno == page_no:
+                return first + int(str(path).rsplit("/", 1)[-1].split("+")[0], 16)
+    except sqlite3.Error:  # the walk itself hit a malformed page: trust no row from here on
+        return count
+    return None
+
+
+def _sqlite_connect(path: Path) -> sqlite3.Connection:
     try:
         con = sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True)
+        # Lenient: a file shorter than its header's page count opens (SQLite refuses it otherwise)
+        # and its pages are read until the first missing one. Read-only, so nothing is written.
+        con.execute("PRAGMA writable_schema = ON")
     except sqlite3.Error as err:
         raise Damage(f"SQLite cannot open the database: {err}") from None
+    return con
+
+
+def _sqlite_topics(con: sqlite3.Connection) -> Iterator[SalvageConnection]:
     try:
-        try:
-            topics = con.execute("SELECT id, name, type FROM topics").fetchall()
-            defs: dict[str, tuple[str, str]] = {}
-            tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-            if "message_definitions" in tables:
-                for typ, enc, text in con.execute(
-                        "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions"):
-                    defs[typ] = ({"ros2msg": "msg", "ros2idl": "idl"}.get(enc, ""), text)
-        except sqlite3.Error as err:
-            raise Damage(f"SQLite cannot read the topic table: {err}") from None
-        for tid, name, typ in topics:
-            fmt, text = defs.get(typ, ("", ""))
-            yield SalvageConnection(int(tid), name, typ, text if fmt else "", fmt)
+        topics = con.execute("SELECT id, name, type FROM topics").fetchall()
+        defs: dict[str, tuple[str, str]] = {}
+        tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if "message_definitions" in tables:
+            for typ, enc, text in con.execute(
+                    "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions"):
+                defs[typ] = ({"ros2msg": "msg", "ros2idl": "idl"}.get(enc, ""), text)
+    except sqlite3.Error as err:
+        raise Damage(f"SQLite cannot read the topic table: {err}") from None
+    for tid, name, typ in topics:
+        fmt, text = defs.get(typ, ("", ""))
+        yield SalvageConnection(int(tid), name, typ, text if fmt else "", fmt)
+
+
+def scan_sqlite(path: Path) -> Iterator[SalvageRecord]:
+    """Topics, then messages in insertion order, up to the first row SQLite cannot read.
+
+    A file cut off in the middle (shorter than its header says) is read up to its first missing
+    page; a message that runs into a cut-off last page is not returned (its end would be zeros).
+    """
+    note, cut_page = _sqlite_cut_page(path)
+    where = f" ({note})" if note else ""
+    con = _sqlite_connect(path)
+    try:
+        conns = list(_sqlite_topics(con))
+        topics = {c.cid for c in conns}
+        yield from conns
+        stop = _sqlite_first_row_on(con, cut_page) if cut_page is not None else None
+        n = 0
         try:
             for tid, t, data in con.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY rowid"):
-                yield SalvageMessage(int(tid), int(t), bytes(data))
+                if not isinstance(data, bytes) or not isinstance(t, int) or tid not in topics:
+                    raise Damage(f"message {n + 1} is a malformed row (topic id {tid!r}){where}")
+                if n == stop:
+                    raise Damage(f"message {n + 1} runs into the cut-off end of the file{where}")
+                yield SalvageMessage(tid, t, data)
+                n += 1
         except sqlite3.Error as err:
-            raise Damage(f"SQLite stopped at a damaged page: {err}") from None
+            raise Damage(f"SQLite stopped at a damaged page after {n} messages: {err}{where}") from None
     finally:
         con.close()
