@@ -89,24 +89,48 @@ def _ros1_records(buf: bytes) -> Iterator[tuple[dict[str, bytes], bytes]]:
         pos += dlen
 
 
+ROS1_OPS = {b"\x02": "message data", b"\x03": "bag header", b"\x04": "index data", b"\x05": "chunk",
+            b"\x06": "chunk info", b"\x07": "connection"}
+ROS1_CHUNK_OPS = (b"\x02", b"\x07")  # what a chunk holds
+
+
+def _ros1_field(header: dict[str, bytes], key: str, fmt: str) -> tuple[int, ...]:
+    """A fixed-size header field; Damage when it is missing or has the wrong size (a flipped length)."""
+    value = header.get(key)
+    if value is None or len(value) != struct.calcsize(fmt):
+        raise Damage(f"record header field '{key}' missing or of the wrong size")
+    return struct.unpack(fmt, value)
+
+
+def _ros1_op(header: dict[str, bytes], allowed: tuple[bytes, ...] | None = None) -> bytes:
+    op = header.get("op", b"")
+    if len(op) != 1 or op not in ROS1_OPS or (allowed is not None and op not in allowed):
+        raise Damage(f"invalid record op code {op!r}")
+    return op
+
+
 def _ros1_inner(header: dict[str, bytes], data: bytes, seen: set[int]) -> Iterator[SalvageRecord]:
-    op = header.get("op", b"\x00")[:1]
+    op = _ros1_op(header, ROS1_CHUNK_OPS)
+    (cid,) = _ros1_field(header, "conn", "<I")
     if op == b"\x07":  # connection
-        cid = struct.unpack("<I", header["conn"])[0]
         if cid in seen:
             return
-        seen.add(cid)
         info = _ros1_fields(data)
-        yield SalvageConnection(
-            cid,
-            header.get("topic", info.get("topic", b"")).decode(),
-            info.get("type", b"").decode(),
-            info.get("message_definition", b"").decode(),
-            "msg",
-        )
-    elif op == b"\x02":  # message data
-        cid = struct.unpack("<I", header["conn"])[0]
-        sec, nsec = struct.unpack("<II", header["time"])
+        try:
+            topic = header.get("topic", info.get("topic", b"")).decode()
+            msgtype, text = info.get("type", b"").decode(), info.get("message_definition", b"").decode()
+        except UnicodeDecodeError:
+            raise Damage("connection record with a malformed topic, type or definition") from None
+        if not topic or msgtype.count("/") not in (1, 2):
+            raise Damage(f"connection record with a malformed topic '{topic}' or type '{msgtype}'")
+        seen.add(cid)
+        yield SalvageConnection(cid, topic, msgtype, text, "msg")
+    else:  # message data
+        if cid not in seen:
+            raise Damage(f"message on connection {cid}, which the bag never defined")
+        sec, nsec = _ros1_field(header, "time", "<II")
+        if nsec >= 1_000_000_000:
+            raise Damage(f"message record time with {nsec} ns (not below 1 s)")
         yield SalvageMessage(cid, sec * 1_000_000_000 + nsec, data)
 
 
@@ -136,11 +160,28 @@ def _read_exact(fh: BinaryIO, n: int, what: str) -> bytes:
     return b
 
 
+def _ros1_chunk(fh: BinaryIO, header: dict[str, bytes], dlen: int, seen: set[int]) -> Iterator[SalvageRecord]:
+    """The records of one chunk: what is there even when cut off; Damage at the first bad one."""
+    data = fh.read(dlen)
+    cut = len(data) < dlen
+    kind = header.get("compression", b"none").decode("latin-1")
+    records = _decompress_partial(kind, data)
+    (size,) = _ros1_field(header, "size", "<I")
+    if not cut and len(records) != size:
+        raise Damage(f"chunk at byte {fh.tell() - dlen} decodes to {len(records)} bytes, its header says {size}")
+    for h, d in _ros1_records(records):
+        yield from _ros1_inner(h, d, seen)
+    if cut:
+        raise Damage(f"chunk cut off at byte {fh.tell()}")
+
+
 def scan_ros1(path: Path) -> Iterator[SalvageRecord]:
     """Connections and messages of a ROS 1 bag in file order, up to the first damaged record.
 
     Raises :class:`Damage` (after yielding everything before it) when the file is cut off or
-    malformed; returns normally at a clean end of file.
+    malformed (inconsistent lengths, invalid op codes or field sizes, a chunk that does not
+    decode to its stated size, a message on an undefined connection); returns normally at a
+    clean end of file.
     """
     seen: set[int] = set()
     with open(path, "rb") as fh:
@@ -155,21 +196,19 @@ def scan_ros1(path: Path) -> Iterator[SalvageRecord]:
             (hlen,) = struct.unpack("<I", head)
             if hlen > 1 << 24:
                 raise Damage(f"implausible record header length at byte {fh.tell() - 4}")
+            at = fh.tell() - 4
             header = _ros1_fields(_read_exact(fh, hlen, "record header"))
             (dlen,) = struct.unpack("<I", _read_exact(fh, 4, "record"))
-            op = header.get("op", b"\x00")[:1]
-            if op == b"\x05":  # chunk: decode what is there, even when cut off
-                data = fh.read(dlen)
-                cut = len(data) < dlen
-                kind = header.get("compression", b"none").decode()
-                for h, d in _ros1_records(_decompress_partial(kind, data)):
-                    yield from _ros1_inner(h, d, seen)
-                if cut:
-                    raise Damage(f"chunk cut off at byte {fh.tell()}")
-            elif op in (b"\x07", b"\x02"):
-                yield from _ros1_inner(header, _read_exact(fh, dlen, "record"), seen)
-            else:  # bag header, index data, chunk info: skip
-                fh.seek(dlen, 1)
+            try:
+                op = _ros1_op(header)
+                if op == b"\x05":  # chunk: decode what is there, even when cut off
+                    yield from _ros1_chunk(fh, header, dlen, seen)
+                elif op in ROS1_CHUNK_OPS:
+                    yield from _ros1_inner(header, _read_exact(fh, dlen, "record"), seen)
+                else:  # bag header, index data, chunk info: skip
+                    fh.seek(dlen, 1)
+            except Damage as err:
+                raise Damage(f"{err} (record at byte {at})") from None
 
 
 # ---------------------------------------------------------------------------- MCAP
