@@ -686,6 +686,8 @@ def image_layout(msg, msgtype: str) -> tuple:
     if msgtype == COMPRESSED_IMAGE:
         fmt = str(msg.format).lower()
         head = bytes(np.asarray(data[:4], dtype=np.uint8))
+        if "compresseddepth" in fmt:  # a header before the PNG; the decoder rejects these anyway
+            return frame, fmt
         if ("jpeg" in fmt and not head.startswith(JPEG_MAGIC)) or ("png" in fmt and not head.startswith(PNG_MAGIC)):
             raise BagDamage(f"compressed image data does not start like its format ('{msg.format}')")
         return frame, fmt
