@@ -18,6 +18,14 @@ from .config import CameraConfig, RosbagConfig, apply_overrides, config_from_dic
 from .errors import WindowVOError, cli_error
 
 
+def type_name(msgtype: str, ros1: bool) -> str:
+    """A message type in its bag's convention: ``sensor_msgs/Image`` in ROS 1, ``sensor_msgs/msg/Image`` in ROS 2."""
+    parts = msgtype.split("/")
+    if ros1 and len(parts) == 3 and parts[1] == "msg":
+        return f"{parts[0]}/{parts[2]}"
+    return msgtype
+
+
 def report(bag_path: Path, rc: RosbagConfig, cam_cfg: CameraConfig | None) -> str:
     from .io.rosbag import BagReader, describe_usage, topic_stats
 
@@ -29,7 +37,7 @@ def report(bag_path: Path, rc: RosbagConfig, cam_cfg: CameraConfig | None) -> st
                  "| topic | type | messages | rate Hz |", "|---|---|---|---|"]
         for t in topic_stats(bag):
             rate = f"{t.rate_hz:.1f}" if t.rate_hz is not None else "-"
-            lines.append(f"| {t.name} | {t.msgtype} | {t.count} | {rate} |")
+            lines.append(f"| {t.name} | {type_name(t.msgtype, not bag.is2)} | {t.count} | {rate} |")
         lines += ["", "windowvo would use:"]
         lines += [f"  {line}" for line in describe_usage(bag, rc, cam_cfg)]
         return "\n".join(lines)
@@ -38,7 +46,7 @@ def report(bag_path: Path, rc: RosbagConfig, cam_cfg: CameraConfig | None) -> st
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m windowvo.topics", description=__doc__.splitlines()[0].strip("`"))
+    p = argparse.ArgumentParser(prog="python -m windowvo.topics", description=__doc__.splitlines()[0].replace("`", ""))
     p.add_argument("bag", help="ROS 1 .bag file, ROS 2 bag folder, or a .db3 / .mcap file")
     p.add_argument("--config", help="YAML config whose rosbag: and camera: sections apply")
     p.add_argument("overrides", nargs="*", help="dotted overrides, e.g. rosbag.image_topic=/cam0/image_raw")

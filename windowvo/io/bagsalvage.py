@@ -7,7 +7,8 @@ or unreadable. ``scan_*`` yields :class:`SalvageRecord` items: connection defini
 they appear, then messages (record time in ns and the serialised bytes).
 
 A ROS 2 SQLite bag (``.db3``) is read row by row in insertion order until SQLite reports
-the damage (``scan_sqlite``); a database whose schema itself is damaged yields nothing.
+the damage (``scan_sqlite``), also when the file is cut off (SQLite is opened leniently, see
+``_sqlite_connect``); a database whose schema itself is damaged yields nothing.
 """
 
 from __future__ import annotations
@@ -88,24 +89,48 @@ def _ros1_records(buf: bytes) -> Iterator[tuple[dict[str, bytes], bytes]]:
         pos += dlen
 
 
+ROS1_OPS = {b"\x02": "message data", b"\x03": "bag header", b"\x04": "index data", b"\x05": "chunk",
+            b"\x06": "chunk info", b"\x07": "connection"}
+ROS1_CHUNK_OPS = (b"\x02", b"\x07")  # what a chunk holds
+
+
+def _ros1_field(header: dict[str, bytes], key: str, fmt: str) -> tuple[int, ...]:
+    """A fixed-size header field; Damage when it is missing or has the wrong size (a flipped length)."""
+    value = header.get(key)
+    if value is None or len(value) != struct.calcsize(fmt):
+        raise Damage(f"record header field '{key}' missing or of the wrong size")
+    return struct.unpack(fmt, value)
+
+
+def _ros1_op(header: dict[str, bytes], allowed: tuple[bytes, ...] | None = None) -> bytes:
+    op = header.get("op", b"")
+    if len(op) != 1 or op not in ROS1_OPS or (allowed is not None and op not in allowed):
+        raise Damage(f"invalid record op code {op!r}")
+    return op
+
+
 def _ros1_inner(header: dict[str, bytes], data: bytes, seen: set[int]) -> Iterator[SalvageRecord]:
-    op = header.get("op", b"\x00")[:1]
+    op = _ros1_op(header, ROS1_CHUNK_OPS)
+    (cid,) = _ros1_field(header, "conn", "<I")
     if op == b"\x07":  # connection
-        cid = struct.unpack("<I", header["conn"])[0]
         if cid in seen:
             return
-        seen.add(cid)
         info = _ros1_fields(data)
-        yield SalvageConnection(
-            cid,
-            header.get("topic", info.get("topic", b"")).decode(),
-            info.get("type", b"").decode(),
-            info.get("message_definition", b"").decode(),
-            "msg",
-        )
-    elif op == b"\x02":  # message data
-        cid = struct.unpack("<I", header["conn"])[0]
-        sec, nsec = struct.unpack("<II", header["time"])
+        try:
+            topic = header.get("topic", info.get("topic", b"")).decode()
+            msgtype, text = info.get("type", b"").decode(), info.get("message_definition", b"").decode()
+        except UnicodeDecodeError:
+            raise Damage("connection record with a malformed topic, type or definition") from None
+        if not topic or msgtype.count("/") not in (1, 2):
+            raise Damage(f"connection record with a malformed topic '{topic}' or type '{msgtype}'")
+        seen.add(cid)
+        yield SalvageConnection(cid, topic, msgtype, text, "msg")
+    else:  # message data
+        if cid not in seen:
+            raise Damage(f"message on connection {cid}, which the bag never defined")
+        sec, nsec = _ros1_field(header, "time", "<II")
+        if nsec >= 1_000_000_000:
+            raise Damage(f"message record time with {nsec} ns (not below 1 s)")
         yield SalvageMessage(cid, sec * 1_000_000_000 + nsec, data)
 
 
@@ -135,11 +160,28 @@ def _read_exact(fh: BinaryIO, n: int, what: str) -> bytes:
     return b
 
 
+def _ros1_chunk(fh: BinaryIO, header: dict[str, bytes], dlen: int, seen: set[int]) -> Iterator[SalvageRecord]:
+    """The records of one chunk: what is there even when cut off; Damage at the first bad one."""
+    data = fh.read(dlen)
+    cut = len(data) < dlen
+    kind = header.get("compression", b"none").decode("latin-1")
+    records = _decompress_partial(kind, data)
+    (size,) = _ros1_field(header, "size", "<I")
+    if not cut and len(records) != size:
+        raise Damage(f"chunk at byte {fh.tell() - dlen} decodes to {len(records)} bytes, its header says {size}")
+    for h, d in _ros1_records(records):
+        yield from _ros1_inner(h, d, seen)
+    if cut:
+        raise Damage(f"chunk cut off at byte {fh.tell()}")
+
+
 def scan_ros1(path: Path) -> Iterator[SalvageRecord]:
     """Connections and messages of a ROS 1 bag in file order, up to the first damaged record.
 
     Raises :class:`Damage` (after yielding everything before it) when the file is cut off or
-    malformed; returns normally at a clean end of file.
+    malformed (inconsistent lengths, invalid op codes or field sizes, a chunk that does not
+    decode to its stated size, a message on an undefined connection); returns normally at a
+    clean end of file.
     """
     seen: set[int] = set()
     with open(path, "rb") as fh:
@@ -154,21 +196,19 @@ def scan_ros1(path: Path) -> Iterator[SalvageRecord]:
             (hlen,) = struct.unpack("<I", head)
             if hlen > 1 << 24:
                 raise Damage(f"implausible record header length at byte {fh.tell() - 4}")
+            at = fh.tell() - 4
             header = _ros1_fields(_read_exact(fh, hlen, "record header"))
             (dlen,) = struct.unpack("<I", _read_exact(fh, 4, "record"))
-            op = header.get("op", b"\x00")[:1]
-            if op == b"\x05":  # chunk: decode what is there, even when cut off
-                data = fh.read(dlen)
-                cut = len(data) < dlen
-                kind = header.get("compression", b"none").decode()
-                for h, d in _ros1_records(_decompress_partial(kind, data)):
-                    yield from _ros1_inner(h, d, seen)
-                if cut:
-                    raise Damage(f"chunk cut off at byte {fh.tell()}")
-            elif op in (b"\x07", b"\x02"):
-                yield from _ros1_inner(header, _read_exact(fh, dlen, "record"), seen)
-            else:  # bag header, index data, chunk info: skip
-                fh.seek(dlen, 1)
+            try:
+                op = _ros1_op(header)
+                if op == b"\x05":  # chunk: decode what is there, even when cut off
+                    yield from _ros1_chunk(fh, header, dlen, seen)
+                elif op in ROS1_CHUNK_OPS:
+                    yield from _ros1_inner(header, _read_exact(fh, dlen, "record"), seen)
+                else:  # bag header, index data, chunk info: skip
+                    fh.seek(dlen, 1)
+            except Damage as err:
+                raise Damage(f"{err} (record at byte {at})") from None
 
 
 # ---------------------------------------------------------------------------- MCAP
@@ -308,30 +348,103 @@ def scan_mcap(path: Path) -> Iterator[SalvageRecord]:
 # ---------------------------------------------------------------------------- SQLite (ROS 2 .db3)
 
 
-def scan_sqlite(path: Path) -> Iterator[SalvageRecord]:
-    """Topics, then messages in insertion order, up to the first row SQLite cannot read."""
+def _sqlite_cut_page(path: Path) -> tuple[str, int | None]:
+    """How the file falls short of its header's page count, and the number of its cut-off last page.
+
+    SQLite reads a cut-off page as if its missing bytes were zeros, so rows stored on it (or data
+    running into it) come back silently zeroed. None when the file ends on a page boundary.
+    """
+    with open(path, "rb") as fh:
+        head = fh.read(100)
+        size = fh.seek(0, 2)
+    if len(head) < 100 or not head.startswith(b"SQLite format 3\0"):
+        raise Damage("not an SQLite database (bad header)")
+    page = struct.unpack_from(">H", head, 16)[0]
+    page = 65536 if page == 1 else page
+    pages = struct.unpack_from(">I", head, 28)[0]
+    note = f"the file holds {size / page:.1f} of its {pages} pages" if size < pages * page else ""
+    return note, (size // page + 1 if size % page else None)
+
+
+def _sqlite_first_row_on(con: sqlite3.Connection, page_no: int) -> int | None:
+    """Position (in rowid order) of the first message row with content on page ``page_no``.
+
+    Walks the messages table's pages with SQLite's ``dbstat`` table (leaves in rowid order, each
+    followed by its cells' overflow pages, named ``<leaf path><cell>+<n>``). None when no row is
+    stored there or ``dbstat`` is missing from this SQLite build; the rows walked so far when the
+    walk stops at a malformed page.
+    """
+    first = 0  # position of the current leaf's first row
+    count = 0
+    try:
+        con.execute("SELECT 1 FROM dbstat LIMIT 0")
+    except sqlite3.Error:
+        return None
+    try:
+        for pageno, path, kind, ncell in con.execute(
+                "SELECT pageno, path, pagetype, ncell FROM dbstat WHERE name = 'messages'"):
+            if kind == "leaf":
+                first, count = count, count + int(ncell)
+                if pageno == page_no:
+                    return first
+            elif kind == "overflow" and pageno == page_no:
+                return first + int(str(path).rsplit("/", 1)[-1].split("+")[0], 16)
+    except sqlite3.Error:  # the walk itself hit a malformed page: trust no row from here on
+        return count
+    return None
+
+
+def _sqlite_connect(path: Path) -> sqlite3.Connection:
     try:
         con = sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True)
+        # Lenient: a file shorter than its header's page count opens (SQLite refuses it otherwise)
+        # and its pages are read until the first missing one. Read-only, so nothing is written.
+        con.execute("PRAGMA writable_schema = ON")
     except sqlite3.Error as err:
         raise Damage(f"SQLite cannot open the database: {err}") from None
+    return con
+
+
+def _sqlite_topics(con: sqlite3.Connection) -> Iterator[SalvageConnection]:
     try:
-        try:
-            topics = con.execute("SELECT id, name, type FROM topics").fetchall()
-            defs: dict[str, tuple[str, str]] = {}
-            tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-            if "message_definitions" in tables:
-                for typ, enc, text in con.execute(
-                        "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions"):
-                    defs[typ] = ({"ros2msg": "msg", "ros2idl": "idl"}.get(enc, ""), text)
-        except sqlite3.Error as err:
-            raise Damage(f"SQLite cannot read the topic table: {err}") from None
-        for tid, name, typ in topics:
-            fmt, text = defs.get(typ, ("", ""))
-            yield SalvageConnection(int(tid), name, typ, text if fmt else "", fmt)
+        topics = con.execute("SELECT id, name, type FROM topics").fetchall()
+        defs: dict[str, tuple[str, str]] = {}
+        tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if "message_definitions" in tables:
+            for typ, enc, text in con.execute(
+                    "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions"):
+                defs[typ] = ({"ros2msg": "msg", "ros2idl": "idl"}.get(enc, ""), text)
+    except sqlite3.Error as err:
+        raise Damage(f"SQLite cannot read the topic table: {err}") from None
+    for tid, name, typ in topics:
+        fmt, text = defs.get(typ, ("", ""))
+        yield SalvageConnection(int(tid), name, typ, text if fmt else "", fmt)
+
+
+def scan_sqlite(path: Path) -> Iterator[SalvageRecord]:
+    """Topics, then messages in insertion order, up to the first row SQLite cannot read.
+
+    A file cut off in the middle (shorter than its header says) is read up to its first missing
+    page; a message that runs into a cut-off last page is not returned (its end would be zeros).
+    """
+    note, cut_page = _sqlite_cut_page(path)
+    where = f" ({note})" if note else ""
+    con = _sqlite_connect(path)
+    try:
+        conns = list(_sqlite_topics(con))
+        topics = {c.cid for c in conns}
+        yield from conns
+        stop = _sqlite_first_row_on(con, cut_page) if cut_page is not None else None
+        n = 0
         try:
             for tid, t, data in con.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY rowid"):
-                yield SalvageMessage(int(tid), int(t), bytes(data))
+                if not isinstance(data, bytes) or not isinstance(t, int) or tid not in topics:
+                    raise Damage(f"message {n + 1} is a malformed row (topic id {tid!r}){where}")
+                if n == stop:
+                    raise Damage(f"message {n + 1} runs into the cut-off end of the file{where}")
+                yield SalvageMessage(tid, t, data)
+                n += 1
         except sqlite3.Error as err:
-            raise Damage(f"SQLite stopped at a damaged page: {err}") from None
+            raise Damage(f"SQLite stopped at a damaged page after {n} messages: {err}{where}") from None
     finally:
         con.close()

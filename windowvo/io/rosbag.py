@@ -657,26 +657,86 @@ class ImageIndex:
     damage: str | None
 
 
+# A header stamp whose offset from the record time changes by more than this between two frames
+# is a damaged stamp (a flipped byte of its seconds), not clock drift.
+STAMP_JUMP_NS = 10 * 1_000_000_000
+JPEG_MAGIC, PNG_MAGIC = b"\xff\xd8", b"\x89PNG"
+
+
+def _bytes_per_pixel(encoding: str) -> int | None:
+    if encoding in MONO8 or encoding in BAYER_CODES:
+        return 1
+    if encoding in MONO16:
+        return 2
+    return COLOR_CODES[encoding][0] if encoding in COLOR_CODES else None
+
+
+def image_layout(msg, msgtype: str) -> tuple:
+    """What must stay the same from frame to frame: frame id, then format, or encoding, size, step, data length.
+
+    Raises :class:`BagDamage` for a message that is inconsistent in itself (a stamp's nanoseconds
+    not below 1 s, image data shorter than height x step, a step below width x bytes per pixel,
+    compressed data without the JPEG / PNG signature its format names).
+    """
+    if not 0 <= int(msg.header.stamp.nanosec) < 1_000_000_000:
+        raise BagDamage(f"header stamp with {msg.header.stamp.nanosec} ns")
+    frame = _norm_frame(msg.header.frame_id)
+    data = msg.data
+    if msgtype == COMPRESSED_IMAGE:
+        fmt = str(msg.format).lower()
+        head = bytes(np.asarray(data[:4], dtype=np.uint8))
+        if "compresseddepth" in fmt:  # a header before the PNG; the decoder rejects these anyway
+            return frame, fmt
+        if ("jpeg" in fmt and not head.startswith(JPEG_MAGIC)) or ("png" in fmt and not head.startswith(PNG_MAGIC)):
+            raise BagDamage(f"compressed image data does not start like its format ('{msg.format}')")
+        return frame, fmt
+    enc = str(msg.encoding).lower()
+    h, w, step, n = int(msg.height), int(msg.width), int(msg.step), len(data)
+    bpp = _bytes_per_pixel(enc)
+    if h <= 0 or w <= 0 or n < h * step or (bpp is not None and step < w * bpp):
+        raise BagDamage(f"image {w}x{h} '{msg.encoding}' with step {step} and {n} data bytes")
+    return frame, enc, h, w, step, int(msg.is_bigendian), n
+
+
+def _layout_change(prev: tuple, cur: tuple) -> str:
+    return f"image layout changed from {prev} to {cur} (frame id, encoding, height, width, step, endianness, bytes)"
+
+
 def index_images(bag: BagReader, topic: str, start_ns: int | None, stop_ns: int | None) -> ImageIndex:
-    """Timestamps of every frame on the topic (one pass, nothing kept but the stamps and the first message)."""
+    """Timestamps of every frame on the topic (one pass, nothing kept but the stamps and the first message).
+
+    Every message is checked (:func:`image_layout`): one that is inconsistent in itself, differs
+    from the first one's layout, or whose stamp jumps against the record time, is damage, and the
+    index stops before it.
+    """
     msgtype = bag.topics[topic].msgtype
     stamps: list[int] = []
     ordinals: list[int] = []
     first, frame_id, dropped, damage = None, "", 0, None
-    k = -1
+    layout: tuple = ()
+    offset: int | None = None  # header stamp - record time of the last stamped frame
+    n_ok = 0  # messages read and checked
     try:
         for k, (_topic, t_rec, raw) in enumerate(bag.messages([topic], start_ns, stop_ns)):
             msg = bag.deserialize(raw, msgtype)
+            cur = image_layout(msg, msgtype)
             if first is None:
-                first, frame_id = msg, _norm_frame(msg.header.frame_id)
+                first, frame_id, layout = msg, _norm_frame(msg.header.frame_id), cur
+            elif cur != layout:
+                raise BagDamage(_layout_change(layout, cur))
             t = _stamp_ns(msg.header, t_rec)
+            if t != t_rec:
+                if offset is not None and abs(t - t_rec - offset) > STAMP_JUMP_NS:
+                    raise BagDamage(f"header stamp jumps by {(t - t_rec - offset) * 1e-9:.0f} s against the record time")
+                offset = t - t_rec
+            n_ok += 1
             if stamps and t <= stamps[-1]:
                 dropped += 1
                 continue
             stamps.append(t)
             ordinals.append(k)
     except BagDamage as err:
-        damage = f"{err} after {k + 1} messages"
+        damage = f"{err}, after {n_ok} good messages on {topic}"
     return ImageIndex(np.asarray(stamps, float) * 1e-9, np.asarray(ordinals, dtype=np.int64), first, frame_id,
                       dropped, damage)
 

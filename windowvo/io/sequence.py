@@ -12,9 +12,10 @@
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -142,6 +143,38 @@ def read_times(path: Path, n_frames: int) -> np.ndarray:
     return t
 
 
+FLOAT_TAG = "tag:yaml.org,2002:float"
+# YAML 1.1 (PyYAML) floats need a dot and a signed exponent: 3.4e2 and 1e-3 would load as strings.
+# This accepts every spelling of YAML 1.2 and Python as well (340.0, 3.4e2, 3.4E+2, 1e-3, .5, -.5e3),
+# keeps 1_000.5, .inf and .nan, and leaves integers (340, 0x1F) to the integer resolver.
+FLOAT_PATTERN = re.compile(
+    r"""^(?:[-+]?[0-9][0-9_]*\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+    |[-+]?\.[0-9][0-9_]*(?:[eE][-+]?[0-9]+)?
+    |[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+
+    |[-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+\.[0-9_]*
+    |[-+]?\.(?:inf|Inf|INF)
+    |\.(?:nan|NaN|NAN))$""", re.X)
+
+
+class _NumberLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` with :data:`FLOAT_PATTERN` as its float resolver."""
+
+
+_NumberLoader.yaml_implicit_resolvers = {
+    first: [(tag, rx) for tag, rx in resolvers if tag != FLOAT_TAG]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_NumberLoader.add_implicit_resolver(FLOAT_TAG, FLOAT_PATTERN, list("-+0123456789."))
+
+
+def safe_load_yaml(text: str) -> Any:
+    """``yaml.safe_load`` that reads every float spelling a user writes (3.4e2, 3.4E+2, 1e-3) as a float.
+
+    Raises ``yaml.YAMLError`` like ``yaml.safe_load``; integers, strings and the rest are unchanged.
+    """
+    return yaml.load(text, Loader=_NumberLoader)  # a SafeLoader subclass: safe
+
+
 def _number(d: dict, key: str, path: Path) -> float:
     if key not in d:
         raise CalibrationError(f"{path.name}: missing key '{key}'")
@@ -157,7 +190,7 @@ def read_camera_yaml(path: Path) -> CameraModel:
     if not path.is_file():
         raise CalibrationError(f"camera calibration not found: {path}")
     try:
-        d = yaml.safe_load(path.read_text())
+        d = safe_load_yaml(path.read_text())
     except (OSError, UnicodeDecodeError) as err:
         raise CalibrationError(f"cannot read {path.name}: {err}") from None
     except yaml.YAMLError:
