@@ -9,6 +9,7 @@ floor, rows of shelving racks, pallets and people walking across the path.
 from __future__ import annotations
 
 import enum
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -91,7 +92,7 @@ class Centreline:
         radius = 1.0 / max(float(curv.max()), 1e-6)
         step = float(np.clip(np.sqrt(8.0 * radius * sag_m), 4.0, max_len))
         edges = np.append(np.arange(0.0, self.s[-1], step), self.s[-1])
-        return [(float(a), float(b)) for a, b in zip(edges[:-1], edges[1:]) if b - a > 0.5]
+        return [(float(a), float(b)) for a, b in itertools.pairwise(edges) if b - a > 0.5]
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
