@@ -7,8 +7,10 @@ odometry.csv, groundtruth.txt). Everything is deterministic for ``spec.seed``.
 from __future__ import annotations
 
 import enum
+import json
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -21,6 +23,7 @@ from ..io.sequence import write_camera_yaml
 from ..io.trajectory import write_tum
 from .paths import PathKind, PlanarPath, make_path
 from .scene import MovingBox, Ramp, Renderer, Scene, make_room_scene
+from .scenes import SceneKind, make_street_scene, make_warehouse_scene
 
 
 class LensPreset(str, enum.Enum):
@@ -61,6 +64,32 @@ class WheelErrorModel:
     yaw_noise: float = 0.002  # rad / sqrt(m) random walk on heading
     slip_windows: list[tuple[float, float, float]] = field(default_factory=list)  # (t0, t1, extra factor)
     rate_hz: float = 100.0
+    # A differential drive's track-width error scales every heading increment: reported yaw change =
+    # (1 + yaw_scale_error) * true yaw change (0.03: the wheels report 3% too much turning).
+    yaw_scale_error: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not -0.5 < self.yaw_scale_error < 0.5:
+            raise ValueError(f"the odometry's yaw_scale_error must lie in (-0.5, 0.5) (got {self.yaw_scale_error})")
+
+
+# Paths the street can be laid along; the street scales them up (a loop of 80 m radius is a gentle curve).
+STREET_PATHS = (PathKind.STRAIGHT, PathKind.LOOP, PathKind.STOP_AND_GO)
+STREET_PATH_SIZE_M = 80.0
+
+# What each scene changes in the SynthSpec defaults (the room: nothing); see SynthSpec.for_scene.
+SCENE_DEFAULTS: dict[SceneKind, dict[str, Any]] = {
+    SceneKind.ROOM: {},
+    SceneKind.STREET: {"path": PathKind.STRAIGHT, "speed": 10.0, "fps": 10.0, "camera_height_m": 1.65,
+                       "camera_pitch_deg": 1.0, "kerb_height_m": 0.13, "n_obstacles": 30},
+    SceneKind.WAREHOUSE: {"speed": 1.0, "camera_height_m": 0.4, "camera_pitch_deg": 5.0, "n_obstacles": 12,
+                          "n_moving": 1, "floor_contrast": 0.25},
+}
+
+
+def scene_defaults(kind: SceneKind) -> dict[str, Any]:
+    """The SynthSpec fields a scene sets when the caller does not (a copy)."""
+    return dict(SCENE_DEFAULTS[SceneKind(kind)])
 
 
 @dataclass
@@ -103,8 +132,17 @@ class SynthSpec:
     # with no floor in view (a wall, a person in front of the camera).
     floor_hidden_frames: int = 0
     write_images: bool = True
+    # What the camera drives through: the room, a street (n_obstacles parked cars, kerb_height_m the kerbs) or a
+    # warehouse (n_obstacles pallets, n_moving people). SynthSpec.for_scene fills in each scene's defaults.
+    scene: SceneKind = SceneKind.ROOM
+
+    @classmethod
+    def for_scene(cls, scene: SceneKind, **fields: Any) -> SynthSpec:
+        """A spec of ``scene`` with its defaults (camera height, speed, fps, ...) where ``fields`` leave them."""
+        return cls(scene=SceneKind(scene), **{**scene_defaults(scene), **fields})
 
     def __post_init__(self) -> None:
+        self._check_scene()
         if not self.duration_s > 0 or not self.fps > 0:
             raise ValueError(f"duration and fps must be positive (got {self.duration_s} s at {self.fps} fps)")
         if self.floor_hidden_frames < 0:
@@ -114,6 +152,17 @@ class SynthSpec:
         if not 0.0 <= self.kerb_height_m < self.camera_height_m:
             raise ValueError(f"kerb_height_m must lie in [0, camera height {self.camera_height_m} m) "
                              f"(got {self.kerb_height_m})")
+
+    def _check_scene(self) -> None:
+        if not isinstance(self.scene, SceneKind):
+            raise ValueError(f"scene must be one of {', '.join(k.value for k in SceneKind)} (got {self.scene!r})")
+        if self.scene is SceneKind.STREET and self.path not in STREET_PATHS:
+            raise ValueError(f"the street scene drives the paths {', '.join(k.value for k in STREET_PATHS)} "
+                             f"(got {PathKind(self.path).value})")
+        if self.scene is not SceneKind.ROOM and (self.path is PathKind.RAMP or self.ramp_height_m > 0):
+            raise ValueError(f"ramps exist in the room scene only (scene {self.scene.value})")
+        if not self.camera_height_m > 0:
+            raise ValueError(f"camera_height_m must be positive (got {self.camera_height_m})")
 
 
 @dataclass
@@ -210,9 +259,21 @@ def place_kerbs(planar: PlanarPath, height: float) -> list[tuple[float, float, f
     return out
 
 
-def build_world(spec: SynthSpec) -> SyntheticWorld:
-    rng = np.random.default_rng(spec.seed)
-    planar = make_path(spec.path, spec.duration_s, spec.speed)
+def _moving_boxes(spec: SynthSpec, rng: np.random.Generator, planar: PlanarPath) -> list[MovingBox]:
+    """Boxes that cross the path back and forth, like people or forklifts."""
+    moving = []
+    for k in range(spec.n_moving):
+        i = int(rng.integers(len(planar.t) // 5, 4 * len(planar.t) // 5))
+        px, py, pyaw = planar.x[i], planar.y[i], planar.yaw[i]
+        ahead = np.array([px, py]) + 2.5 * np.array([np.cos(pyaw), np.sin(pyaw)])
+        side = np.array([-np.sin(pyaw), np.cos(pyaw)])
+        moving.append(
+            MovingBox(ahead - 2.5 * side, ahead + 2.5 * side, (0.5, 0.5, 1.7), float(rng.uniform(5, 8)), spec.seed + 100 + k)
+        )
+    return moving
+
+
+def _room(spec: SynthSpec, rng: np.random.Generator, planar: PlanarPath) -> Scene:
     ramp = None
     half_x = 9.0
     if spec.path is PathKind.RAMP or spec.ramp_height_m > 0:
@@ -224,17 +285,24 @@ def build_world(spec: SynthSpec) -> SyntheticWorld:
     obstacles = _place_obstacles(rng, planar, spec.n_obstacles, min(half_x, half_y))
     if spec.kerb_height_m > 0:
         obstacles += place_kerbs(planar, spec.kerb_height_m)
-    moving = []
-    for k in range(spec.n_moving):
-        # Boxes that cross the path back and forth, like people or forklifts.
-        i = int(rng.integers(len(planar.t) // 5, 4 * len(planar.t) // 5))
-        px, py, pyaw = planar.x[i], planar.y[i], planar.yaw[i]
-        ahead = np.array([px, py]) + 2.5 * np.array([np.cos(pyaw), np.sin(pyaw)])
-        side = np.array([-np.sin(pyaw), np.cos(pyaw)])
-        moving.append(
-            MovingBox(ahead - 2.5 * side, ahead + 2.5 * side, (0.5, 0.5, 1.7), float(rng.uniform(5, 8)), spec.seed + 100 + k)
-        )
-    scene = make_room_scene(spec.seed, half_x, half_y, 3.0, obstacles, ramp, moving, spec.floor_contrast)
+    moving = _moving_boxes(spec, rng, planar)
+    return make_room_scene(spec.seed, half_x, half_y, 3.0, obstacles, ramp, moving, spec.floor_contrast)
+
+
+def build_world(spec: SynthSpec) -> SyntheticWorld:
+    rng = np.random.default_rng(spec.seed)
+    if spec.scene is SceneKind.STREET:
+        planar = make_path(spec.path, spec.duration_s, spec.speed, size=STREET_PATH_SIZE_M)
+        scene = make_street_scene(spec.seed, planar, spec.kerb_height_m, spec.n_obstacles,
+                                  _moving_boxes(spec, rng, planar))
+    elif spec.scene is SceneKind.WAREHOUSE:
+        planar = make_path(spec.path, spec.duration_s, spec.speed)
+        kerbs = place_kerbs(planar, spec.kerb_height_m) if spec.kerb_height_m > 0 else []
+        scene = make_warehouse_scene(spec.seed, planar, spec.n_obstacles, _moving_boxes(spec, rng, planar),
+                                     spec.floor_contrast, kerbs)
+    else:
+        planar = make_path(spec.path, spec.duration_s, spec.speed)
+        scene = _room(spec, rng, planar)
     return SyntheticWorld(spec, scene, camera_for(spec), planar)
 
 
@@ -250,6 +318,9 @@ def simulate_wheel_odometry(world: SyntheticWorld, err: WheelErrorModel, seed: i
         f"{label} wheel odometry: scale_error={err.scale_error}, yaw_bias_per_m={err.yaw_bias_per_m}, "
         f"distance_noise={err.distance_noise}, yaw_noise={err.yaw_noise}, slip_windows={err.slip_windows}"
     )
+    if err.yaw_scale_error != 0.0:  # (named only when set: odometry.csv of earlier specs stays as it was)
+        dyaw = dyaw * (1.0 + err.yaw_scale_error)
+        comment += f", yaw_scale_error={err.yaw_scale_error}"
     return integrate_wheel_odometry(ts, ds, dyaw, scale_error=err.scale_error, yaw_bias_per_m=err.yaw_bias_per_m,
                                     distance_noise=err.distance_noise, yaw_noise=err.yaw_noise,
                                     rng=np.random.default_rng(seed + 7919), slip_windows=err.slip_windows,
@@ -277,65 +348,79 @@ def below_horizon(cam: CameraModel) -> np.ndarray:
         return (rays[:, 2] < 0.0).reshape(cam.height, cam.width)
 
 
-def generate_sequence(out: Path, spec: SynthSpec, progress: bool = False) -> SyntheticWorld:
-    out = Path(out)
-    world = build_world(spec)  # validates the camera before anything is written
-    (out / "images").mkdir(parents=True, exist_ok=True)
-    cam = world.camera
-    renderer = Renderer(world.scene, cam, seed=spec.seed) if spec.write_images else None
-    n = round(spec.duration_s * spec.fps) + 1
-    times_all = np.arange(n) / spec.fps
-    keep = [i for i in range(n) if i not in set(spec.dropped_frames)]
+def _frame_image(renderer: Renderer, spec: SynthSpec, i: int, t: float, T_wb: np.ndarray, rng: np.random.Generator,
+                 hidden: np.ndarray | None) -> np.ndarray:
+    """Frame ``i`` as written: rendered, then blurred, washed out, noisy, hidden or black as the spec says."""
+    cam = renderer.camera
+    img, _ = renderer.render(T_wb @ cam.T_base_cam, t, gain=frame_gain(spec, i, rng))
+    img = img * 255.0
+    if any(a <= i <= b for a, b in spec.blur_frames):
+        ksize = 15
+        kern = np.zeros((ksize, ksize), np.float32)
+        kern[ksize // 2, :] = 1.0 / ksize
+        img = cv2.filter2D(img, -1, kern)
+    if any(a <= i <= b for a, b in spec.low_contrast_frames):
+        img = 128.0 + 0.08 * (img - float(img.mean()))
+    if spec.image_noise > 0:
+        img = img + rng.normal(0, spec.image_noise, img.shape).astype(np.float32)
+    img8 = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    if hidden is not None and i < spec.floor_hidden_frames:
+        img8[hidden] = int(img8[~hidden].mean())
+    if i in spec.black_frames:
+        img8 = np.zeros_like(img8)
+    return img8
+
+
+def _write_images(folder: Path, world: SyntheticWorld, frames: list[tuple[int, float, np.ndarray]],
+                  progress: bool) -> None:
+    """Render and write the kept frames ``(index, time, T_world_base)``, with the spec's faults."""
+    spec = world.spec
+    renderer = Renderer(world.scene, world.camera, seed=spec.seed)
     rng = np.random.default_rng(spec.seed + 1)
-    hidden = below_horizon(cam) if spec.floor_hidden_frames > 0 else None
-    gt_poses = []
-    written = 0
+    hidden = below_horizon(world.camera) if spec.floor_hidden_frames > 0 else None
     last_img = None
-    for k, i in enumerate(keep):
-        t = times_all[i]
-        T_wb = world.T_world_base(t)
-        gt_poses.append(T_wb)
-        if renderer is None:
-            continue
-        name = out / "images" / f"{written:06d}.png"
-        written += 1
+    for k, (i, t, T_wb) in enumerate(frames):
+        name = folder / f"{k:06d}.png"
         if i in spec.corrupt_frames:
             name.write_bytes(b"\x89PNG\r\n\x1a\n" + b"corrupt" * 10)
             continue
         if i in spec.duplicate_frames and last_img is not None:
             cv2.imwrite(str(name), last_img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
             continue
-        img, _ = renderer.render(T_wb @ cam.T_base_cam, t, gain=frame_gain(spec, i, rng))
-        img = img * 255.0
-        if any(a <= i <= b for a, b in spec.blur_frames):
-            ksize = 15
-            kern = np.zeros((ksize, ksize), np.float32)
-            kern[ksize // 2, :] = 1.0 / ksize
-            img = cv2.filter2D(img, -1, kern)
-        if any(a <= i <= b for a, b in spec.low_contrast_frames):
-            img = 128.0 + 0.08 * (img - float(img.mean()))
-        if spec.image_noise > 0:
-            img = img + rng.normal(0, spec.image_noise, img.shape).astype(np.float32)
-        img8 = np.clip(img + 0.5, 0, 255).astype(np.uint8)
-        if hidden is not None and i < spec.floor_hidden_frames:
-            img8[hidden] = int(img8[~hidden].mean())
-        if i in spec.black_frames:
-            img8 = np.zeros_like(img8)
+        img8 = _frame_image(renderer, spec, i, t, T_wb, rng, hidden)
         cv2.imwrite(str(name), img8, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         last_img = img8
         if progress and k % 50 == 0:
-            print(f"rendered {k}/{len(keep)}", flush=True)
-    times = times_all[keep]
+            print(f"rendered {k}/{len(frames)}", flush=True)
+
+
+def _write_tables(out: Path, world: SyntheticWorld, times: np.ndarray, gt_poses: list[np.ndarray]) -> None:
+    """times.txt, camera.yaml, groundtruth.txt, odometry.csv and synth.json."""
+    spec = world.spec
     (out / "times.txt").write_text("".join(f"{t:.6f}\n" for t in times))
     claimed = camera_for(replace(spec, camera_pitch_deg=spec.camera_pitch_deg + spec.calib_pitch_error_deg))
-    write_camera_yaml(out / "camera.yaml", claimed if spec.calib_pitch_error_deg else cam)
+    write_camera_yaml(out / "camera.yaml", claimed if spec.calib_pitch_error_deg else world.camera)
     write_tum(out / "groundtruth.txt", times, np.stack(gt_poses), header="ground truth: T_world_base (TUM)")
     odo = simulate_wheel_odometry(world, spec.wheel, spec.seed, "synthetic")
     write_odometry_csv(out / "odometry.csv", odo)
     meta = asdict(spec)
     meta["path"] = spec.path.value
+    meta["scene"] = spec.scene.value
     meta["distortion_model"] = DistortionModel(spec.distortion_model).value
-    import json
-
     (out / "synth.json").write_text(json.dumps(meta, indent=1, default=str))
+
+
+def generate_sequence(out: Path, spec: SynthSpec, progress: bool = False) -> SyntheticWorld:
+    """Write the native sequence of ``spec`` into ``out`` (images/, times.txt, camera.yaml, odometry.csv,
+    groundtruth.txt, synth.json)."""
+    out = Path(out)
+    world = build_world(spec)  # validates the camera before anything is written
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    n = round(spec.duration_s * spec.fps) + 1
+    times_all = np.arange(n) / spec.fps
+    keep = [i for i in range(n) if i not in set(spec.dropped_frames)]
+    frames = [(i, float(times_all[i]), world.T_world_base(times_all[i])) for i in keep]
+    if spec.write_images:
+        _write_images(out / "images", world, frames, progress)
+    _write_tables(out, world, times_all[keep], [T for _, _, T in frames])
     return world

@@ -9,6 +9,7 @@ texture through a mip-mapped atlas (trilinear) so distant surfaces do not alias.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -32,9 +33,11 @@ class Plane:
     tex_offset: tuple[float, float] = (0.0, 0.0)
     brightness: float = 1.0
     contrast: float = 1.0  # texture contrast around mid-grey (0: a uniform, featureless surface)
+    # A specular-like sheen: this much brightness added at grazing view angles, (1 - cos)^3 (a polished floor).
+    gloss: float = 0.0
 
-    @property
-    def normal(self) -> np.ndarray:
+    @cached_property
+    def normal(self) -> np.ndarray:  # (the axes are fixed once a plane is made)
         n = np.cross(self.axis_u, self.axis_v)
         return n / np.linalg.norm(n)
 
@@ -43,7 +46,7 @@ class Plane:
         return np.stack([o, o + a, o + a + b, o + b])
 
 
-def _rect(origin, axis_u, axis_v, lu, lv, rng: np.random.Generator, brightness: float, facing=None) -> Plane:
+def textured_rect(origin, axis_u, axis_v, lu, lv, rng: np.random.Generator, brightness: float, facing=None) -> Plane:
     """A textured rectangle; with ``facing`` its visible side (normal) points towards that point."""
     origin = np.asarray(origin, float)
     au = np.asarray(axis_u, float)
@@ -71,11 +74,31 @@ def box_planes(center_xy, size_xyz, rng: np.random.Generator, z0: float = 0.0) -
     x0, x1, y0, y1 = cx - sx / 2, cx + sx / 2, cy - sy / 2, cy + sy / 2
     b = rng.uniform(0.7, 1.0)
     return [
-        _rect([x0, y0, z0], [1, 0, 0], [0, 0, 1], sx, sz, rng, b, facing=[cx, y0 - 50, z0]),
-        _rect([x1, y1, z0], [-1, 0, 0], [0, 0, 1], sx, sz, rng, b, facing=[cx, y1 + 50, z0]),
-        _rect([x0, y1, z0], [0, -1, 0], [0, 0, 1], sy, sz, rng, b * 0.9, facing=[x0 - 50, cy, z0]),
-        _rect([x1, y0, z0], [0, 1, 0], [0, 0, 1], sy, sz, rng, b * 0.9, facing=[x1 + 50, cy, z0]),
-        _rect([x0, y0, z0 + sz], [1, 0, 0], [0, 1, 0], sx, sy, rng, b * 1.05, facing=[cx, cy, z0 + sz + 50]),
+        textured_rect([x0, y0, z0], [1, 0, 0], [0, 0, 1], sx, sz, rng, b, facing=[cx, y0 - 50, z0]),
+        textured_rect([x1, y1, z0], [-1, 0, 0], [0, 0, 1], sx, sz, rng, b, facing=[cx, y1 + 50, z0]),
+        textured_rect([x0, y1, z0], [0, -1, 0], [0, 0, 1], sy, sz, rng, b * 0.9, facing=[x0 - 50, cy, z0]),
+        textured_rect([x1, y0, z0], [0, 1, 0], [0, 0, 1], sy, sz, rng, b * 0.9, facing=[x1 + 50, cy, z0]),
+        textured_rect([x0, y0, z0 + sz], [1, 0, 0], [0, 1, 0], sx, sy, rng, b * 1.05, facing=[cx, cy, z0 + sz + 50]),
+    ]
+
+
+def oriented_box_planes(center_xy, yaw: float, size_xyz, rng: np.random.Generator, z0: float = 0.0,
+                        brightness: float | None = None) -> list[Plane]:
+    """Four vertical faces and the top of a box standing on z=z0, its x side along heading ``yaw``."""
+    c = np.append(np.asarray(center_xy, float), z0)
+    sx, sy, sz = size_xyz
+    ex = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    ey = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+    ez = np.array([0.0, 0.0, 1.0])
+    b = float(rng.uniform(0.7, 1.0)) if brightness is None else brightness
+    lo = c - ex * sx / 2 - ey * sy / 2
+    hi = c + ex * sx / 2 + ey * sy / 2
+    return [
+        textured_rect(lo, ex, ez, sx, sz, rng, b, facing=c - 50 * ey),
+        textured_rect(hi, -ex, ez, sx, sz, rng, b, facing=c + 50 * ey),
+        textured_rect(lo + ey * sy, -ey, ez, sy, sz, rng, b * 0.9, facing=c - 50 * ex),
+        textured_rect(hi - ey * sy, ey, ez, sy, sz, rng, b * 0.9, facing=c + 50 * ex),
+        textured_rect(lo + ez * sz, ex, ey, sx, sy, rng, b * 1.05, facing=c + (sz + 50) * ez),
     ]
 
 
@@ -148,22 +171,22 @@ def make_room_scene(
     rng = np.random.default_rng(seed)
     planes: list[Plane] = []
     if ramp is None:
-        planes.append(_rect([-half_x, -half_y, 0], [1, 0, 0], [0, 1, 0], 2 * half_x, 2 * half_y, rng, 1.0, facing=[0, 0, 100]))
+        planes.append(textured_rect([-half_x, -half_y, 0], [1, 0, 0], [0, 1, 0], 2 * half_x, 2 * half_y, rng, 1.0, facing=[0, 0, 100]))
     else:
         h = ramp.height
         L = np.hypot(ramp.x1 - ramp.x0, h)
-        planes.append(_rect([-half_x, -half_y, 0], [1, 0, 0], [0, 1, 0], ramp.x0 + half_x, 2 * half_y, rng, 1.0, facing=[0, 0, 100]))
+        planes.append(textured_rect([-half_x, -half_y, 0], [1, 0, 0], [0, 1, 0], ramp.x0 + half_x, 2 * half_y, rng, 1.0, facing=[0, 0, 100]))
         planes.append(
-            _rect([ramp.x0, -half_y, 0], [ramp.x1 - ramp.x0, 0, h], [0, 1, 0], L, 2 * half_y, rng, 0.95, facing=[ramp.x0, 0, 100])
+            textured_rect([ramp.x0, -half_y, 0], [ramp.x1 - ramp.x0, 0, h], [0, 1, 0], L, 2 * half_y, rng, 0.95, facing=[ramp.x0, 0, 100])
         )
-        planes.append(_rect([ramp.x1, -half_y, h], [1, 0, 0], [0, 1, 0], half_x - ramp.x1, 2 * half_y, rng, 1.0, facing=[0, 0, 100]))
+        planes.append(textured_rect([ramp.x1, -half_y, h], [1, 0, 0], [0, 1, 0], half_x - ramp.x1, 2 * half_y, rng, 1.0, facing=[0, 0, 100]))
     for fp in planes:
         fp.contrast = floor_contrast
     wb = 0.85
-    planes.append(_rect([-half_x, -half_y, -1], [1, 0, 0], [0, 0, 1], 2 * half_x, wall_h + 1, rng, wb, facing=[0, 0, 1]))
-    planes.append(_rect([half_x, half_y, -1], [-1, 0, 0], [0, 0, 1], 2 * half_x, wall_h + 1, rng, wb, facing=[0, 0, 1]))
-    planes.append(_rect([-half_x, half_y, -1], [0, -1, 0], [0, 0, 1], 2 * half_y, wall_h + 1, rng, wb * 0.9, facing=[0, 0, 1]))
-    planes.append(_rect([half_x, -half_y, -1], [0, 1, 0], [0, 0, 1], 2 * half_y, wall_h + 1, rng, wb * 0.9, facing=[0, 0, 1]))
+    planes.append(textured_rect([-half_x, -half_y, -1], [1, 0, 0], [0, 0, 1], 2 * half_x, wall_h + 1, rng, wb, facing=[0, 0, 1]))
+    planes.append(textured_rect([half_x, half_y, -1], [-1, 0, 0], [0, 0, 1], 2 * half_x, wall_h + 1, rng, wb, facing=[0, 0, 1]))
+    planes.append(textured_rect([-half_x, half_y, -1], [0, -1, 0], [0, 0, 1], 2 * half_y, wall_h + 1, rng, wb * 0.9, facing=[0, 0, 1]))
+    planes.append(textured_rect([half_x, -half_y, -1], [0, 1, 0], [0, 0, 1], 2 * half_y, wall_h + 1, rng, wb * 0.9, facing=[0, 0, 1]))
     for ox, oy, sx, sy, sz in obstacles or []:
         z0 = float(ramp.height_at(ox)) if ramp is not None else 0.0
         planes.extend(box_planes((ox, oy), (sx, sy, sz), rng, z0=z0))
@@ -291,6 +314,25 @@ def raycast(planes: list[Plane], origin: np.ndarray, dirs: np.ndarray, near: flo
     return t_best, idx_keep[best].astype(np.int32), u[rows, best], v[rows, best]
 
 
+@dataclass
+class _Buffers:
+    """Per-pixel state of the nearest surface so far."""
+
+    tbuf: np.ndarray  # ray parameter of the nearest hit
+    s_tex: np.ndarray
+    t_tex: np.ndarray
+    cosb: np.ndarray
+    bright: np.ndarray
+    contrast: np.ndarray
+    gloss: np.ndarray | None  # only when some plane is glossy
+
+    @classmethod
+    def empty(cls, shape: tuple[int, int], glossy: bool) -> _Buffers:
+        return cls(np.full(shape, np.inf, np.float32), np.zeros(shape, np.float32), np.zeros(shape, np.float32),
+                   np.ones(shape, np.float32), np.zeros(shape, np.float32), np.ones(shape, np.float32),
+                   np.zeros(shape, np.float32) if glossy else None)
+
+
 class Renderer:
     """Renders grey images of a scene for a fixed camera model (lens distortion included).
 
@@ -326,6 +368,9 @@ class Renderer:
         self.row_y = (yn.min(axis=1), yn.max(axis=1))
         self.atlas = MipAtlas(make_texture(scene.texture_seed))
         self.base_footprint = np.float32(1.0 / camera.fx)
+        self._corners: np.ndarray | None = None
+        self.x_min, self.x_max = float(self.col_x[0].min()), float(self.col_x[1].max())
+        self.y_min, self.y_max = float(self.row_y[0].min()), float(self.row_y[1].max())
 
     def _outline(self, plane: Plane, T_cam_world: np.ndarray, per_edge: int) -> np.ndarray:
         """Points densely sampled along the plane's border, in the camera frame."""
@@ -344,16 +389,11 @@ class Renderer:
         z = pc[:, 2]
         if np.all(z < near):
             return None
-        clipped = []
-        n = len(pc)
-        for i in range(n):
-            a, b = pc[i], pc[(i + 1) % n]
-            if a[2] >= near:
-                clipped.append(a)
-            if (a[2] >= near) != (b[2] >= near):
-                s = (near - a[2]) / (b[2] - a[2])
-                clipped.append(a + s * (b - a))
-        q = np.asarray(clipped)
+        nxt = np.roll(pc, -1, axis=0)
+        front, crosses = z >= near, (z >= near) != (nxt[:, 2] >= near)
+        a, b = pc[crosses], nxt[crosses]
+        s = (near - a[:, 2]) / (b[:, 2] - a[:, 2])
+        q = np.concatenate([pc[front], a + s[:, None] * (b - a)])
         xn = q[:, 0] / q[:, 2]
         yn = q[:, 1] / q[:, 2]
         x0, x1, y0, y1 = xn.min(), xn.max(), yn.min(), yn.max()
@@ -398,6 +438,72 @@ class Renderer:
             return None
         return slice(int(max(r0, 0)), int(min(r1, H - 1)) + 1), slice(int(max(c0, 0)), int(min(c1, W - 1)) + 1)
 
+    def _static_corners(self) -> np.ndarray:
+        """Corners (P, 4, 3) of the scene's fixed planes, computed once."""
+        if self._corners is None or len(self._corners) != len(self.scene.planes):
+            self._corners = np.stack([p.corners() for p in self.scene.planes]) if self.scene.planes else np.zeros((0, 4, 3))
+        return self._corners
+
+    def _in_front(self, planes: list[Plane], T_cam_world: np.ndarray, near: float) -> list[Plane]:
+        """The planes not wholly behind the camera's near plane (a pinhole lens sees none of those).
+
+        A cheap, vectorised test before the per-plane work: it only drops planes that the block test
+        would drop anyway, so images do not change; streets with hundreds of planes stay fast.
+        """
+        if self.wide:
+            return planes
+        n_static = len(self.scene.planes)
+        corners = self._static_corners()
+        if len(planes) > n_static:
+            corners = np.concatenate([corners, np.stack([p.corners() for p in planes[n_static:]])])
+        pc = corners @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]  # (P, 4, 3) corners in the camera frame
+        x, y, z = pc[..., 0], pc[..., 1], pc[..., 2]
+        keep = (z >= near).any(axis=1)
+        # ... nor wholly beyond one side of the view frustum (a convex set: then no pixel ray meets them)
+        keep &= (x <= self.x_max * z).any(axis=1) & (x >= self.x_min * z).any(axis=1)
+        keep &= (y <= self.y_max * z).any(axis=1) & (y >= self.y_min * z).any(axis=1)
+        # ... nor clearly seen from their back (the exact test stays in _raster)
+        normals = np.stack([p.normal for p in planes])
+        origins = corners[:, 0]
+        keep &= np.einsum("pk,pk->p", origins - inv_T(T_cam_world)[:3, 3], normals) < 1e-6
+        return [p for p, k in zip(planes, keep) if k]
+
+    def _raster(self, p: Plane, T_world_cam: np.ndarray, T_cam_world: np.ndarray, near: float, buf: _Buffers) -> None:
+        """Draw one plane into the buffers where it is nearer than what they hold."""
+        R = T_world_cam[:3, :3].astype(np.float32)
+        cam_o = T_world_cam[:3, 3]
+        n = p.normal
+        num = float(np.dot(p.origin - cam_o, n))
+        if num >= 0:  # camera behind the plane's visible side
+            return
+        blk = self._block(p, T_cam_world, near)
+        if blk is None:
+            return
+        rs, cs = blk
+        rays = self.rays_cam[rs, cs]  # (h, w, 3) camera frame
+        # Plane quantities expressed in the camera frame: one dot product per pixel each.
+        n_c = (R.T @ n.astype(np.float32))
+        a_c = (R.T @ p.axis_u.astype(np.float32))
+        b_c = (R.T @ p.axis_v.astype(np.float32))
+        dn = rays @ n_c
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_ray = np.float32(num) / dn
+        rel = (cam_o - p.origin)
+        u = np.float32(rel @ p.axis_u) + t_ray * (rays @ a_c)
+        v = np.float32(rel @ p.axis_v) + t_ray * (rays @ b_c)
+        tb = buf.tbuf[rs, cs]
+        ok = (t_ray > near) & (t_ray < tb) & (u >= 0) & (u <= p.length_u) & (v >= 0) & (v <= p.length_v)
+        if not ok.any():
+            return
+        tb[ok] = t_ray[ok]
+        buf.s_tex[rs, cs][ok] = (u[ok] + p.tex_offset[0]) / TEXEL_M
+        buf.t_tex[rs, cs][ok] = (v[ok] + p.tex_offset[1]) / TEXEL_M
+        buf.cosb[rs, cs][ok] = np.abs(dn[ok]) / np.linalg.norm(rays[ok], axis=1)
+        buf.bright[rs, cs][ok] = p.brightness
+        buf.contrast[rs, cs][ok] = p.contrast
+        if buf.gloss is not None:
+            buf.gloss[rs, cs][ok] = p.gloss
+
     def render(self, T_world_cam: np.ndarray, t: float, gain: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Image (float32 0..1) and range seen from ``T_world_cam``.
 
@@ -405,55 +511,21 @@ class Renderer:
         ray (inf where nothing is hit); it is defined for every lens, fisheye included.
         """
         planes = self.scene.planes_at(t)
-        H, W = self.shape
         near = 0.05
         T_cam_world = inv_T(T_world_cam)
-        R = T_world_cam[:3, :3].astype(np.float32)
-        cam_o = T_world_cam[:3, 3]
-        tbuf = np.full((H, W), np.inf, np.float32)  # ray parameter of the nearest hit
-        s_tex = np.zeros((H, W), np.float32)
-        t_tex = np.zeros((H, W), np.float32)
-        cosb = np.ones((H, W), np.float32)
-        bright = np.zeros((H, W), np.float32)
-        contrast = np.ones((H, W), np.float32)
-        for p in planes:
-            n = p.normal
-            num = float(np.dot(p.origin - cam_o, n))
-            if num >= 0:  # camera behind the plane's visible side
-                continue
-            blk = self._block(p, T_cam_world, near)
-            if blk is None:
-                continue
-            rs, cs = blk
-            rays = self.rays_cam[rs, cs]  # (h, w, 3) camera frame
-            # Plane quantities expressed in the camera frame: one dot product per pixel each.
-            n_c = (R.T @ n.astype(np.float32))
-            a_c = (R.T @ p.axis_u.astype(np.float32))
-            b_c = (R.T @ p.axis_v.astype(np.float32))
-            dn = rays @ n_c
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t_ray = np.float32(num) / dn
-            rel = (cam_o - p.origin)
-            u = np.float32(rel @ p.axis_u) + t_ray * (rays @ a_c)
-            v = np.float32(rel @ p.axis_v) + t_ray * (rays @ b_c)
-            tb = tbuf[rs, cs]
-            ok = (t_ray > near) & (t_ray < tb) & (u >= 0) & (u <= p.length_u) & (v >= 0) & (v <= p.length_v)
-            if not ok.any():
-                continue
-            tb[ok] = t_ray[ok]
-            s_tex[rs, cs][ok] = (u[ok] + p.tex_offset[0]) / TEXEL_M
-            t_tex[rs, cs][ok] = (v[ok] + p.tex_offset[1]) / TEXEL_M
-            cosb[rs, cs][ok] = np.abs(dn[ok]) / np.linalg.norm(rays[ok], axis=1)
-            bright[rs, cs][ok] = p.brightness
-            contrast[rs, cs][ok] = p.contrast
-        tbuf[~self.valid] = np.inf
-        hit = np.isfinite(tbuf)
-        range_m = tbuf * self.ray_len  # ray parameter -> metres along the ray
-        footprint = np.where(hit, range_m, 1.0) * self.base_footprint / np.sqrt(np.maximum(cosb, 0.05))
+        buf = _Buffers.empty(self.shape, glossy=any(p.gloss > 0 for p in planes))
+        for p in self._in_front(planes, T_cam_world, near):
+            self._raster(p, T_world_cam, T_cam_world, near, buf)
+        buf.tbuf[~self.valid] = np.inf
+        hit = np.isfinite(buf.tbuf)
+        range_m = buf.tbuf * self.ray_len  # ray parameter -> metres along the ray
+        footprint = np.where(hit, range_m, 1.0) * self.base_footprint / np.sqrt(np.maximum(buf.cosb, 0.05))
         level = np.clip(np.log2(np.maximum(footprint / TEXEL_M, 1e-6)), 0.0, MIP_LEVELS - 1.001).astype(np.float32)
-        img = self.atlas.sample(s_tex.ravel(), t_tex.ravel(), level.ravel(), self.shape)
-        img = 0.5 + (img - 0.5) * contrast
-        img *= bright
+        img = self.atlas.sample(buf.s_tex.ravel(), buf.t_tex.ravel(), level.ravel(), self.shape)
+        img = 0.5 + (img - 0.5) * buf.contrast
+        img *= buf.bright
+        if buf.gloss is not None:  # sheen towards grazing angles: view-dependent, like a polished floor
+            img += buf.gloss * (1.0 - buf.cosb) ** 3
         img[~hit] = 0.05
         img *= gain
         return img, range_m
