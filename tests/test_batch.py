@@ -19,10 +19,14 @@ from pathlib import Path
 import pytest
 import yaml
 
-from windowvo import batch
+from windowvo.cli import batch as batch_cli
 from windowvo.errors import ConfigError
 from windowvo.eval.metrics import evaluate
-from windowvo.executors import (
+from windowvo.io.trajectory import read_tum
+from windowvo.synth.generate import SynthSpec, generate_sequence
+from windowvo.synth.paths import PathKind
+from windowvo.tools import batch
+from windowvo.tools.executors import (
     ExecutorKind,
     ExecutorUnavailableError,
     LocalExecutor,
@@ -31,9 +35,6 @@ from windowvo.executors import (
     call_task,
     make_executor,
 )
-from windowvo.io.trajectory import read_tum
-from windowvo.synth.generate import SynthSpec, generate_sequence
-from windowvo.synth.paths import PathKind
 
 MAX_FEATURES = [120, 200]
 MAX_FRAMES = 60
@@ -212,7 +213,7 @@ def test_ray_batch_gives_the_same_table(local_batch, batch_dir):
 def test_bad_spec_is_one_line_and_exit_2(tmp_path, capsys, text, needle):
     spec = tmp_path / "spec.yaml"
     spec.write_text(text)
-    assert batch.main([str(spec), "--no-progress"]) == 2
+    assert batch_cli.main([str(spec), "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("windowvo: error: ") and needle in err, err
     assert "\n" not in err
@@ -234,7 +235,7 @@ def test_ray_missing_is_one_line(tmp_path, capsys, monkeypatch):
     spec = tmp_path / "spec.yaml"
     spec.write_text("sequences: [a]\noutput: o\n")
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError, as without the extra
-    assert batch.main([str(spec), "--executor", "ray", "--no-progress"]) == 2
+    assert batch_cli.main([str(spec), "--executor", "ray", "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert err == 'windowvo: error: the ray executor needs Ray: pip install "windowvo[cluster]"'
     with pytest.raises(ExecutorUnavailableError):
@@ -280,7 +281,7 @@ def test_call_task_resolves_main_module_objects(tmp_path):
     """Functions and classes of a module run as ``python -m`` pickle as ``__main__.X``; the worker maps them back."""
     (tmp_path / "batchprobe.py").write_text(
         "from dataclasses import dataclass\n"
-        "from windowvo.executors import LocalExecutor, call_task\n"
+        "from windowvo.tools.executors import LocalExecutor, call_task\n"
         "@dataclass\n"
         "class Leg:\n"
         "    a: float\n"

@@ -9,12 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from windowvo import bench
+from windowvo.cli import bench as bench_cli
 from windowvo.config import config_from_dict
 from windowvo.eval.metrics import evaluate
 from windowvo.io.sequence import load_native
 from windowvo.io.trajectory import read_tum
 from windowvo.runtime.job import load_sequence
+from windowvo.tools import bench
 from windowvo.types import ScaleSource
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -144,7 +145,7 @@ def test_bench_peak_rss_is_the_worker_own():
 
     block = bytearray(300 * 2**20)
     block[:: 4096] = b"\x01" * len(block[:: 4096])
-    code = "from windowvo.bench import _peak_rss_mb; print(_peak_rss_mb())"
+    code = "from windowvo.tools.bench import _peak_rss_mb; print(_peak_rss_mb())"
     peak = float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
     del block
     assert 5.0 < peak < 150.0
@@ -158,7 +159,7 @@ def test_bench_overrides_reach_every_run_and_bad_ones_stop_early(tmp_path, capsy
     assert (cfg.backend.marginalize_every, cfg.backend.window_keyframes) == (2, 9)
     assert cfg.run_mode.value == "sequential" and Path(cfg.output) == tmp_path / "out" / "loop"
     # a bad override: one line on stderr and exit 2, before any sequence is rendered or run
-    rc = bench.main(["--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c"), "--only", "loop",
+    rc = bench_cli.main(["--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c"), "--only", "loop",
                      "--set", "backend.marginalize_every=0"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "backend.marginalize_every" in err[0], err
@@ -171,7 +172,7 @@ def test_bench_cpu_accounting_counts_threads_and_ended_children():
     import subprocess
     import threading
 
-    from windowvo.bench import _cpu_with_children_s
+    from windowvo.tools.bench import _cpu_with_children_s
 
     burn = "import time\nt = time.thread_time()\nwhile time.thread_time() - t < 0.3: pass\n"
     before = _cpu_with_children_s()

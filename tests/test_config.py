@@ -6,9 +6,9 @@ import pytest
 import yaml
 from pydantic import Field, create_model
 
-from windowvo import config_doc
 from windowvo.config import RerunMode, TrackerKind, config_from_dict, load_config
 from windowvo.errors import ConfigError
+from windowvo.tools import config_doc
 
 
 def write(tmp_path: Path, text: str) -> Path:

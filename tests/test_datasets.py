@@ -230,7 +230,7 @@ def test_folder_and_convert(tmp_path):
                             "camera": {"width": 64, "height": 48, "fx": 50, "fy": 50, "cx": 32, "cy": 24}})
     seq = io.load(cfg)
     assert len(seq) == 6 and np.allclose(np.diff(seq.timestamps), 0.1)
-    from windowvo.convert import convert
+    from windowvo.tools.convert import convert
 
     convert(seq, tmp_path / "native")
     back = load_native(tmp_path / "native")

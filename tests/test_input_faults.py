@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from windowvo.cli.topics import main as topics_main
 from windowvo.config import RosbagConfig
 from windowvo.errors import CalibrationError
 from windowvo.io.bagsalvage import Damage, SalvageMessage, scan_ros1, scan_sqlite
@@ -21,8 +22,7 @@ from windowvo.io.rosbag import load_rosbag
 from windowvo.io.sequence import load_native, read_camera_yaml, safe_load_yaml
 from windowvo.synth.bagwriter import EPOCH, BagSpec, write_bag
 from windowvo.synth.paths import PathKind
-from windowvo.topics import main as topics_main
-from windowvo.topics import report
+from windowvo.tools.topics import report
 
 W, H, N = 160, 120, 40
 

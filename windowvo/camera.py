@@ -5,19 +5,13 @@ All functions are vectorised over N points given as ``(N, 2)`` pixels or ``(N, 3
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from .errors import CalibrationError
-
-
-class DistortionModel(str, enum.Enum):
-    NONE = "none"
-    RADTAN = "radtan"  # k1, k2, p1, p2[, k3]
-    EQUIDISTANT = "equidistant"  # k1, k2, k3, k4 (OpenCV fisheye)
+from .types import DistortionModel
 
 
 @dataclass(frozen=True)

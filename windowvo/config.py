@@ -16,6 +16,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .errors import ConfigError
+from .types import DistortionModel
 
 log = logging.getLogger(__name__)
 
@@ -307,7 +308,7 @@ class CameraConfig(_Section):
     fy: float = Field(gt=0, description="focal length y (pixels)")
     cx: float = Field(ge=0, description="principal point x (pixels)")
     cy: float = Field(ge=0, description="principal point y (pixels)")
-    distortion_model: str = Field("none", description="none, radtan or equidistant")
+    distortion_model: DistortionModel = Field(DistortionModel.NONE, description="lens distortion model")
     distortion: list[float] = Field([], description="distortion coefficients (radtan: k1 k2 p1 p2 [k3]; equidistant: k1"
                                                     " k2 k3 k4)")
     T_base_cam: list[float] | None = Field(None, description="camera mounting T_base_cam, 16 numbers row major; "
@@ -318,13 +319,6 @@ class CameraConfig(_Section):
     def _sixteen(cls, v):
         if v is not None and len(v) != 16:
             raise ValueError("T_base_cam needs 16 numbers (row major)")
-        return v
-
-    @field_validator("distortion_model")
-    @classmethod
-    def _model(cls, v):
-        if v not in ("none", "radtan", "equidistant"):
-            raise ValueError("must be none, radtan or equidistant")
         return v
 
 

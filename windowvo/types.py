@@ -23,6 +23,14 @@ class Frame:
     mask: np.ndarray | None = None  # uint8, 0 where features are forbidden
 
 
+class DistortionModel(str, enum.Enum):
+    """Lens distortion models (OpenCV's)."""
+
+    NONE = "none"
+    RADTAN = "radtan"  # k1, k2, p1, p2[, k3]
+    EQUIDISTANT = "equidistant"  # k1, k2, k3, k4 (OpenCV fisheye)
+
+
 class GateOutcome(str, enum.Enum):
     """Result of the quality gates on a keyframe candidate."""
 

@@ -1,7 +1,7 @@
 """Run many independent jobs, each in its own fresh Python process, locally or on a Ray cluster.
 
 A :class:`Task` is one command line (``python -m windowvo.run CONFIG ...``) or one picklable
-Python call (:func:`call_task`, run as ``python -m windowvo.executors``). :func:`run_task` runs it
+Python call (:func:`call_task`, run as ``python -m windowvo.tools.executors``). :func:`run_task` runs it
 as a subprocess with an optional time-out and turns every way it can end into a
 :class:`TaskOutcome`: a crash in a native library (a signal), a ``windowvo: error:`` line, an
 exception, a time-out. One bad job never takes the others down, and a new interpreter per job
@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from .errors import WindowVOError
+from ..errors import WindowVOError
 
 ERROR_PREFIX = "windowvo: error:"
 PARENT_PID_ENV = "WINDOWVO_PARENT_PID"
@@ -77,7 +77,7 @@ class Task:
     """One job: ``python ARGS...`` in a fresh interpreter.
 
     ``result_json``: a JSON file the job writes on success (read back into the outcome).
-    ``call``: a pickled ``(function, args, kwargs)`` fed to ``python -m windowvo.executors`` on stdin
+    ``call``: a pickled ``(function, args, kwargs)`` fed to ``python -m windowvo.tools.executors`` on stdin
     (see :func:`call_task`); its return value comes back in the outcome.
     ``log_path``: where the job's stderr is kept (beside its outputs).
     """
@@ -184,7 +184,7 @@ def run_task(task: Task) -> TaskOutcome:
         if task.call is not None:
             tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="windowvo_task_")))
             result_path = tmp / "result.pickle"
-            args = ["-m", "windowvo.executors", str(result_path)]
+            args = ["-m", "windowvo.tools.executors", str(result_path)]
         if len(args) >= 2 and args[0] == "-m":
             args = ["-c", _BOOT, *args[1:]]
         if task.log_path:
