@@ -1,12 +1,12 @@
-"""Metric-scale pieces on their own: robust thresholds, the calibrated wheel and ground factors
-(their Jacobians against numerical derivatives), floor detection, and the calibration key lifecycle."""
+"""Metric-scale pieces on their own: floor detection and attitude, the floor model's floor after a scale
+drift, the wheel calibration and its key lifecycle (the factor builders are in test_factors.py)."""
 
 import gtsam
 import numpy as np
 import pytest
 
 from windowvo.backend import factors as fac
-from windowvo.backend.factors import C, L, X
+from windowvo.backend.factors import L, X
 from windowvo.backend.ground import (
     FloorAttitude,
     attitude_jitter_deg,
@@ -25,169 +25,6 @@ from windowvo.synth.features import simulate_features
 from windowvo.synth.generate import SynthSpec, WheelErrorModel, camera_for
 from windowvo.synth.paths import PathKind
 from windowvo.types import OdometryStep, WheelCalibration
-
-
-def test_robust_thresholds_are_chi_square_quantiles():
-    # Known quantiles of the chi-square distribution at 95 %: 3.841 (1 dof), 5.991 (2), 7.815 (3).
-    assert fac.robust_threshold(1, 0.95) == pytest.approx(np.sqrt(3.8415), abs=1e-3)
-    assert fac.robust_threshold(2, 0.95) == pytest.approx(np.sqrt(5.9915), abs=1e-3)
-    assert fac.robust_threshold(3, 0.95) == pytest.approx(np.sqrt(7.8147), abs=1e-3)
-    cfg = BackendConfig()
-    assert fac.threshold(None, 2, cfg) == pytest.approx(2.4477, abs=1e-3)
-    assert fac.threshold(1.345, 2, cfg) == 1.345  # an explicit threshold wins
-
-
-def test_robust_thresholds_match_the_chi_square_closed_forms():
-    import math
-
-    for conf in (0.5, 0.9, 0.95, 0.99, 0.999):
-        x1, x2, x3 = (fac.robust_threshold(d, conf) ** 2 for d in (1, 2, 3))
-        assert math.erf(math.sqrt(x1 / 2)) == pytest.approx(conf, abs=1e-12)
-        assert 1 - math.exp(-x2 / 2) == pytest.approx(conf, abs=1e-12)
-        closed3 = math.erf(math.sqrt(x3 / 2)) - math.sqrt(2 * x3 / math.pi) * math.exp(-x3 / 2)
-        assert closed3 == pytest.approx(conf, abs=1e-12)
-
-
-def _numerical_jacobians(factor, values: gtsam.Values, eps: float = 1e-6) -> list[np.ndarray]:
-    out = []
-    for key in list(factor.keys()):
-        dims = 6 if values.exists(key) and key in (X(0), X(1)) else None
-        if dims is None:
-            dims = 2 if gtsam.Symbol(key).chr() == ord("c") else 3
-        cols = []
-        for i in range(dims):
-            d = np.zeros(dims)
-            d[i] = eps
-            vp, vm = gtsam.Values(values), gtsam.Values(values)
-            if dims == 6:
-                vp.update(key, values.atPose3(key).retract(d))
-                vm.update(key, values.atPose3(key).retract(-d))
-            elif dims == 3:
-                vp.update(key, values.atPoint3(key) + d)
-                vm.update(key, values.atPoint3(key) - d)
-            else:
-                vp.update(key, values.atPoint2(key) + d)
-                vm.update(key, values.atPoint2(key) - d)
-            cols.append((factor.unwhitenedError(vp) - factor.unwhitenedError(vm)) / (2 * eps))
-        out.append(np.stack(cols, axis=1))
-    return out
-
-
-def _analytic_jacobians(factor, values: gtsam.Values) -> list[np.ndarray]:
-    lin = factor.linearize(values)
-    A, _ = lin.jacobian()
-    sigmas = factor.noiseModel().sigmas() if hasattr(factor.noiseModel(), "sigmas") else None
-    out, col = [], 0
-    for key in list(factor.keys()):
-        d = values.atPose3(key).localCoordinates(values.atPose3(key)).size if gtsam.Symbol(key).chr() == ord("x") else (
-            2 if gtsam.Symbol(key).chr() == ord("c") else 3)
-        block = A[:, col:col + d]
-        out.append(block * sigmas[:, None] if sigmas is not None else block)
-        col += d
-    return out
-
-
-def _values(c=(1.02, 0.01)):
-    v = gtsam.Values()
-    v.insert(X(0), gtsam.Pose3(make_T(rpy_to_R(0.02, -0.03, 0.4), [1.0, 2.0, 0.05])))
-    v.insert(X(1), gtsam.Pose3(make_T(rpy_to_R(-0.01, 0.02, 0.7), [1.5, 2.4, 0.02])))
-    v.insert(C(1), np.array(c))
-    v.insert(L(7), np.array([3.0, 2.5, 0.03]))
-    return v
-
-
-def test_calibrated_wheel_factor_residual_and_jacobians():
-    cfg = BackendConfig(odometry={"robust": "none"})
-    v = _values()
-    D = v.atPose3(X(0)).between(v.atPose3(X(1))).matrix()
-    yaw = np.arctan2(D[1, 0], D[0, 0])
-    dist = float(np.hypot(D[0, 3], D[1, 3]))
-    # Wheels that over-report distance by 2 % and add 0.01 rad of yaw per metre: zero residual at c = (1.02, 0.01).
-    meas = make_T(rpy_to_R(0, 0, yaw + 0.01 * dist), [1.02 * D[0, 3], 1.02 * D[1, 3], 0.0])
-    f = next(g for g in fac.odometry_factors(cfg, 1, meas, dist, calib_key=fac.C(1)) if isinstance(g, gtsam.CustomFactor))
-    assert np.abs(f.unwhitenedError(v)).max() < 1e-9
-    v_wrong = _values(c=(1.0, 0.0))
-    err = f.unwhitenedError(v_wrong)
-    assert abs(err[1]) > 0.005 and abs(err[0]) > 0.004  # it measures the calibration
-    for Ha, Hn in zip(_analytic_jacobians(f, v_wrong), _numerical_jacobians(f, v_wrong)):
-        assert np.allclose(Ha, Hn, atol=1e-5), (Ha, Hn)
-
-
-def test_ground_factor_measures_height_off_the_floor_and_the_base_attitude():
-    """The native bearing factor's whitened residual is a point's height off the floor in sigmas (to first
-    order), for the pose it was made at and for a tilted one: the floor points hold the base's attitude."""
-    cfg = BackendConfig(ground={"robust": "none"})
-    sigma = 0.0135
-    T = make_T(rpy_to_R(0.0, 0.0, 0.7), [1.0, 2.0, 0.0])
-    v = gtsam.Values()
-    v.insert(X(1), gtsam.Pose3(T))
-    for floor_z in (0.0, -0.05):  # floor at the base origin, or 5 cm below it (camera height override)
-        p_base = np.array([2.0, 0.6, floor_z])
-        f = fac.ground_factor(X(1), L(7), p_base, floor_z, sigma, cfg)
-        for dz in (0.0, 0.004, -0.01):
-            vv = gtsam.Values(v)
-            vv.insert(L(7), gtsam.Point3(T[:3, :3] @ (p_base + [0, 0, dz]) + T[:3, 3]))
-            assert np.sqrt(2 * f.error(vv)) == pytest.approx(abs(dz) / sigma, rel=0.02, abs=1e-6)
-    # The same point seen from a base pitched by 0.3 deg: the point sits r * 0.3 deg off its floor.
-    p_base = np.array([2.0, 0.6, 0.0])
-    f = fac.ground_factor(X(1), L(7), p_base, 0.0, sigma, cfg)
-    pitch = np.radians(0.3)
-    vv = gtsam.Values()
-    vv.insert(X(1), gtsam.Pose3(T @ make_T(rpy_to_R(0.0, pitch, 0.0), [0, 0, 0])))
-    vv.insert(L(7), gtsam.Point3(T[:3, :3] @ p_base + T[:3, 3]))
-    assert np.sqrt(2 * f.error(vv)) == pytest.approx(2.0 * pitch / sigma, rel=0.05)
-    # The azimuth is left to the projection factors: a point moved sideways costs (almost) nothing.
-    vv = gtsam.Values(v)
-    vv.insert(L(7), gtsam.Point3(T[:3, :3] @ (p_base + [0, 0.05, 0]) + T[:3, 3]))
-    assert np.sqrt(2 * f.error(vv)) < 0.05
-    with pytest.raises(ValueError):
-        fac.ground_factor(X(1), L(7), np.zeros(3), 0.0, sigma, cfg)
-
-
-def test_level_ground_factor_measures_height_along_the_floor_normal_not_the_base_attitude():
-    """The level factor's residual is the point's height above the base origin along the given normal,
-    less the floor's z; tilting the base leaves it unchanged (that is its point: a rocking chassis must
-    not move its floor points); the Jacobians match numerical ones."""
-    cfg = BackendConfig(ground={"robust": "none"})
-    up = np.array([0.02, -0.01, 1.0])
-    up /= np.linalg.norm(up)
-    v = _values()
-    f = fac.level_ground_factor(X(1), L(7), up, -0.05, 0.0135, cfg)
-    p, t = v.atPoint3(L(7)), v.atPose3(X(1)).translation()
-    assert f.unwhitenedError(v)[0] == pytest.approx(up @ (p - t) + 0.05, abs=1e-12)
-    tilted = gtsam.Values(v)
-    tilted.update(X(1), gtsam.Pose3(v.atPose3(X(1)).matrix() @ make_T(rpy_to_R(0.03, -0.02, 0.0), [0, 0, 0])))
-    assert f.unwhitenedError(tilted)[0] == pytest.approx(f.unwhitenedError(v)[0], abs=1e-12)
-    raised = gtsam.Values(v)
-    raised.update(L(7), p + 0.01 * up)  # 1 cm up along the normal: 1 cm more residual
-    assert f.unwhitenedError(raised)[0] - f.unwhitenedError(v)[0] == pytest.approx(0.01, abs=1e-12)
-    for Ha, Hn in zip(_analytic_jacobians(f, v), _numerical_jacobians(f, v)):
-        assert np.allclose(Ha, Hn, atol=1e-6), (Ha, Hn)
-
-
-def test_ground_factor_along_a_learnt_floor_normal():
-    """With the base z axis as the normal the factor is the plain one; with a tilted normal a point on the
-    plane n . q = offset costs nothing and one raised along n by dz costs dz / sigma."""
-    cfg = BackendConfig(ground={"robust": "none"})
-    sigma = 0.0135
-    T = make_T(rpy_to_R(0.0, 0.0, 0.7), [1.0, 2.0, 0.0])
-    p_base = np.array([2.0, 0.6, 0.0])
-    v = gtsam.Values()
-    v.insert(X(1), gtsam.Pose3(T))
-    v.insert(L(7), gtsam.Point3(T[:3, :3] @ (p_base + [0, 0, 0.004]) + T[:3, 3]))
-    plain = fac.ground_factor(X(1), L(7), p_base, 0.0, sigma, cfg)
-    along_z = fac.ground_factor(X(1), L(7), p_base, 0.0, sigma, cfg, np.array([0.0, 0.0, 1.0]))
-    assert along_z.error(v) == plain.error(v)
-    n = rpy_to_R(0.0, np.radians(-1.0), 0.0)[:, 2]  # a floor tilted by 1 deg in the base frame
-    offset = -0.01
-    q = np.array([2.0, 0.6, 0.0])
-    q = q - (n @ q - offset) * n  # on the plane
-    f = fac.ground_factor(X(1), L(7), q, offset, sigma, cfg, n)
-    for dz in (0.0, 0.005, -0.01):
-        vv = gtsam.Values()
-        vv.insert(X(1), gtsam.Pose3(T))
-        vv.insert(L(7), gtsam.Point3(T[:3, :3] @ (q + dz * n) + T[:3, 3]))
-        assert np.sqrt(2 * f.error(vv)) == pytest.approx(abs(dz) / sigma, rel=0.02, abs=1e-6)
 
 
 def test_floor_attitude_is_the_median_of_the_fits():
@@ -331,12 +168,12 @@ def test_floor_points_at_the_base_origin_are_not_candidates():
 
 
 def _drifted_floor_of(be: SlidingWindowBackend, scale: float, rng: np.random.Generator):
-    """``_floor_of`` for new landmarks on the floor, a wall and a box, seen at ``scale`` x their true
+    """``FloorModel.floor_of`` for new landmarks on the floor, a wall and a box, seen at ``scale`` x their true
     distances from the camera (the estimate's scale drifted), with no landmarks in the window."""
     cam = be.T_base_cam[:3, 3]
     floor, pts = _scene_points(rng)
     born = [(i, cam + scale * (p - cam)) for i, p in enumerate(pts)]
-    mask, fit = be._floor_of(born, np.eye(4))
+    mask, fit = be.floor.floor_of(be.k, born, np.eye(4))
     return mask, fit, len(floor)
 
 

@@ -1,0 +1,51 @@
+"""The floor model on its own (``windowvo/backend/floor.py``, ``FloorModel``): the ground cue's switch for a
+camera too low, the mount judgement that switches to the learnt floor normal (once), and the floor plane it
+then ties floor points to. (Its floor after a monocular scale drift is tested in test_ground.py.)"""
+
+import numpy as np
+import pytest
+
+from windowvo.backend.floor import MIN_CAMERA_HEIGHT_M, FloorModel
+from windowvo.backend.landmarks import LandmarkManager
+from windowvo.config import BackendConfig, MountCalibration
+from windowvo.geometry import rpy_to_R
+from windowvo.synth.generate import SynthSpec, camera_for
+from windowvo.synth.paths import PathKind
+
+
+@pytest.fixture(scope="module")
+def camera():
+    return camera_for(SynthSpec(path=PathKind.LOOP, duration_s=2.0, seed=1))
+
+
+def _model(camera, use_odometry: bool = True, **ground) -> FloorModel:
+    cfg = BackendConfig(ground=ground)
+    return FloorModel(camera, cfg, use_odometry, LandmarkManager(camera, cfg), {})
+
+
+def test_a_camera_too_low_switches_the_ground_cue_off(camera):
+    low = _model(camera, use_odometry=False, camera_height_m=MIN_CAMERA_HEIGHT_M / 2)
+    assert not low.use_ground and not low.waiting_for_floor() and not low.ground_active()
+    born = [(1, np.array([2.0, 0.0, 0.0])), (2, np.array([3.0, 0.5, 0.0]))]
+    mask, fit = low.floor_of(0, born, np.eye(4))
+    assert fit is None and mask.tolist() == [False, False]
+    mono = _model(camera, use_odometry=False)  # monocular with the cue: up to scale until the floor is seen
+    assert mono.use_ground and mono.waiting_for_floor() and not mono.metric
+    assert mono.floor_offset(None) == pytest.approx(0.0)  # base origin on the floor: its z is 0
+
+
+@pytest.mark.parametrize("mode", [MountCalibration.AUTO, MountCalibration.OFF])
+def test_the_mount_judgement_switches_once_to_the_learnt_normal(camera, mode):
+    fm = _model(camera, mount_calibration=mode, mount_min_fits=10)
+    tilted = rpy_to_R(0.0, np.radians(1.5), 0.0)[:, 2]  # a mount pitched by 1.5 deg
+    assert fm.floor_normal_base() is None
+    for i in range(12):
+        fm.floor_attitude.add(tilted)
+        switched = fm.judge_mount(i, calibrating=True)
+        assert switched == (mode is MountCalibration.AUTO and i == 9), i  # ready (and significant) at 10 fits
+    n = fm.floor_normal_base()
+    if mode is MountCalibration.OFF:
+        assert n is None and not fm.retie_pending
+        return
+    assert fm.retie_pending and fm.mount_normal_used
+    assert n is not None and np.degrees(np.arccos(np.clip(n @ tilted, -1, 1))) < 1e-6

@@ -1,0 +1,356 @@
+"""The back end's floor model: all floor state and the floor's part of each keyframe (``FloorModel``).
+
+The smoother (``smoother.py``) asks it, at each keyframe, which new landmarks lie on the floor (``floor_of``:
+a plane fitted over the window's landmarks with ``ground.floor_mask``; after a monocular run's scale drifted,
+``_floor_after_scale_drift``), which floor they are tied to (the keyframe's base frame; a level frame when the
+base rocks, ``level_up``; a learnt mount tilt with ``ground.mount_calibration``, ``judge_mount`` and
+``floor_normal_base``), and for the ground factors themselves (``birth_ground_factor``; at the mount switch
+``retie_window_floor``; off-floor landmarks lose theirs, ``untie_off_floor``). A monocular run takes its metric
+scale from the floor: at its start (``first_baseline``) or when the floor first comes into view
+(``late_metric_start``). The pure geometry (plane fits, attitude, off-floor test) is in ``ground.py``.
+
+The model reads the window's landmarks (``LandmarkManager``) and keyframe poses; it never touches the
+smoother: it adds factors to the update the smoother builds and returns factor indices to remove.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..camera import CameraModel
+from ..config import BackendConfig, MountCalibration
+from ..geometry import inv_T, make_T
+from ..types import FrontendOutput
+from . import factors as fac
+from .factors import X
+from .ground import (
+    UNTIE_MIN_SIGMA_HEIGHTS,
+    FloorAttitude,
+    PlaneFit,
+    attitude_jitter_deg,
+    camera_height_up_to_scale,
+    floor_mask,
+    level_up,
+    off_floor,
+)
+from .landmarks import LandmarkManager, triangulate_midpoint
+
+log = logging.getLogger(__name__)
+
+# A monocular run trusts a floor plane it cannot check against a metric height (at its late metric start,
+# and after its scale drifted) only when two consecutive keyframes' planes agree within this share (one
+# plane could be a table top): ``floors_agree``.
+FLOOR_AGREEMENT = 0.1
+# Smallest camera height (m) for which the ground cue makes sense.
+MIN_CAMERA_HEIGHT_M = 0.05
+# Keyframes of the window needed before the base's rocking is judged (a median over fewer is noise).
+MIN_ROCKING_KEYFRAMES = 5
+
+
+def floors_agree(previous: float, current: float) -> bool:
+    """Two consecutive keyframes' up-to-scale floor planes (scales or heights) agree within ``FLOOR_AGREEMENT``."""
+    return abs(current / previous - 1.0) <= FLOOR_AGREEMENT
+
+
+class FloorModel:
+    """Where the floor is, which landmarks are tied to it, and what scale it gives (the ground cue)."""
+
+    def __init__(self, camera: CameraModel, cfg: BackendConfig, use_odometry: bool, lm: LandmarkManager,
+                 kf_pose: dict[int, np.ndarray]):
+        self.camera = camera
+        self.cfg = cfg
+        self.use_odometry = use_odometry
+        self.lm = lm  # the window's landmarks (shared with the smoother)
+        self.kf_pose = kf_pose  # the window's keyframe poses T_world_base (the smoother's; read here)
+        self.T_base_cam = camera.T_base_cam
+        # The camera's height above the floor, and where the floor is in the base frame.
+        g = cfg.ground
+        cam_z = float(self.T_base_cam[2, 3])
+        self.camera_height_m = float(g.camera_height_m) if g.camera_height_m is not None else cam_z
+        self.floor_z = cam_z - self.camera_height_m  # the floor's z in the base frame
+        self.use_ground = g.enabled and self.camera_height_m >= MIN_CAMERA_HEIGHT_M
+        if g.enabled and not self.use_ground:
+            log.warning("ground cue off: camera height %.3f m above the floor is too small (T_base_cam z, "
+                        "or backend.ground.camera_height_m)", self.camera_height_m)
+        self.ground_sigma_m = g.sigma_height_fraction * self.camera_height_m
+        self._rng = np.random.default_rng(g.seed)
+        # The floor's attitude in the base frame is always learnt (the summary reports it: a tilted mount
+        # shows there); with ground.mount_calibration it is also used.
+        self.floor_attitude = FloorAttitude(g.mount_min_fits, g.mount_fits)
+        # ground.mount_calibration auto: the learnt normal is used from the first keyframe where its tilt is
+        # significant on (sticky), and the wheel calibration's scale is released once at that keyframe.
+        self.mount_normal_used = g.mount_calibration is MountCalibration.ON
+        self.retie_pending = False  # the window's floor landmarks are re-tied at the next update
+        self.floor_normal_learnt = False  # the last update measured its floor points along the learnt normal
+        # Metric scale: from the wheels, or (monocular) once the ground plane has fixed the first baseline, or
+        # later, when the floor first comes into view (``late_metric_start``).
+        self.metric = use_odometry
+        self.metric_from_keyframe: int | None = None  # a late metric start: the keyframe it happened at
+        self._late_scale: float | None = None  # the last keyframe's floor scale while waiting for one
+        # Monocular, metric: the height of the last keyframe's floor plane at a drifted scale (None: the metric
+        # fit passed or no plane), and how often the floor was taken back at one (``_floor_after_scale_drift``).
+        self._drift_height: float | None = None
+        self.n_scale_reanchors = 0
+        self.n_ground_factors = 0
+        self.n_floor_untied = 0  # ground factors removed from floor landmarks found off the floor (``untie_off_floor``)
+        self.n_level_ground_factors = 0  # of them, measured along the floor's normal (the base rocks)
+        self.base_rocking_deg = float("nan")  # attitude_jitter_deg over the window at the last floor fit
+        self.level_frame = False  # the last update measured its floor points in the level frame
+        self.n_ground_keyframes = 0
+
+    # ------------------------------------------------------------------ state
+    def ground_active(self) -> bool:
+        return self.use_ground and self.metric
+
+    def waiting_for_floor(self) -> bool:
+        """A monocular run that saw no floor at its start: up to scale until ``late_metric_start``."""
+        return self.use_ground and not self.metric
+
+    def begin_update(self) -> None:
+        """A new update: nothing measured in the level frame or along the learnt normal yet."""
+        self.level_frame = self.floor_normal_learnt = False
+
+    def count_ground_factors(self, n_ground: int) -> None:
+        """An update's ground factors went into the smoother."""
+        self.n_ground_factors += n_ground
+        self.n_ground_keyframes += int(n_ground > 0)
+
+    def floor_offset(self, n_base: np.ndarray | None) -> float:
+        """The floor as the plane ``n_base . q = offset`` in the base frame: the camera at its known height
+        above it (with the base z axis: the floor's z, 0 unless the camera height is overridden)."""
+        if n_base is None:
+            return self.floor_z
+        return float(n_base @ self.T_base_cam[:3, 3]) - self.camera_height_m
+
+    def floor_normal_base(self) -> np.ndarray | None:
+        """The floor's normal in the base frame learnt so far, when it is used (None: the base z axis)."""
+        if not self.mount_normal_used or not self.floor_attitude.ready:
+            return None
+        return self.floor_attitude.normal
+
+    # ------------------------------------------------------------------ which landmarks are floor
+    def below_horizon(self, tids: list[int], T_guess: np.ndarray) -> np.ndarray:
+        """Whether each track's newest ray points below the horizon (a cheap floor pre-check)."""
+        if not tids:
+            return np.zeros(0, bool)
+        uv = np.asarray([self.lm.obs[t][-1][1] for t in tids])
+        K = self.camera
+        rays = np.stack([(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy, np.ones(len(uv))], axis=1)
+        d = rays @ self.T_base_cam[:3, :3].T
+        dep = np.degrees(np.arctan2(-d[:, 2], np.hypot(d[:, 0], d[:, 1])))
+        return dep >= self.cfg.ground.min_depression_deg
+
+    def floor_of(self, k: int, born: list[tuple[int, np.ndarray]], T_guess: np.ndarray
+                 ) -> tuple[np.ndarray, PlaneFit | None]:
+        """Which new landmarks (of keyframe k) lie on the floor (plane fitted over the window's landmarks and
+        them), and the plane (base frame of ``T_guess``).
+
+        On a level base the ground factor takes the base's own xy plane as the floor (a rocking one:
+        ``level_up``). Measured against it: a normal
+        refitted per keyframe was noisier than the base attitude the smoother estimates from all the
+        evidence, and a mean of the last 30 keyframes' normals (for a camera pitched on its mount) took
+        up a ramp's tilt ahead (rendered ramp 0.012 -> 0.051 m) without helping on KITTI."""
+        if self.waiting_for_floor() and born:
+            # No metric height to fit a floor plane at yet: below the horizon is all that is known.
+            return self.below_horizon([tid for tid, _ in born], T_guess), None
+        if not self.ground_active() or not born:
+            return np.zeros(len(born), bool), None
+        new_pts = np.asarray([p for _, p in born])
+        old_pts = self.lm.positions()[1]
+        pts = np.concatenate([new_pts, old_pts])
+        mask, fit = floor_mask(pts, T_guess, self.T_base_cam, self.camera_height_m, self.cfg.ground, self._rng)
+        if fit is None and not self.use_odometry:
+            mask, fit = self._floor_after_scale_drift(k, pts, T_guess)
+        else:
+            self._drift_height = None
+        fa = self.floor_attitude
+        if fit is not None:
+            fa.add(fit.normal)
+            if self.cfg.ground.mount_calibration is MountCalibration.ON and not fa.ready:
+                # Still learning the floor's attitude on the mount: floor points tied to a floor the mount
+                # may be tilted against would set a wrong scale (and the wheel calibration with it), which
+                # the calibration's slow random walk then carries for the rest of the run.
+                return np.zeros(len(born), bool), fit
+        return mask[: len(born)], fit
+
+    def _floor_after_scale_drift(self, k: int, pts: np.ndarray, T_guess: np.ndarray
+                                 ) -> tuple[np.ndarray, PlaneFit | None]:
+        """The floor of a monocular run whose scale drifted (no wheels: the floor is its only scale source).
+
+        While no floor is in view the scale drifts like any monocular run's (KITTI 01 on the highway: 35%
+        in 7 keyframes without floor tracks); when the floor is back, it lies at a height the metric fit
+        rejects (``height_tolerance``), and the run would stay drifted. A plane found at the same height at
+        two consecutive keyframes (``floors_agree``, as at the late metric start: one plane could be a
+        table top) is taken as the floor again: its ground factors pull the scale back."""
+        mask, fit = floor_mask(pts, T_guess, self.T_base_cam, self.camera_height_m, self.cfg.ground, self._rng,
+                               metric_scale_known=False)
+        prev, self._drift_height = self._drift_height, (None if fit is None else fit.camera_height_m)
+        if fit is None or prev is None or not floors_agree(prev, fit.camera_height_m):
+            return np.zeros(len(pts), bool), None
+        self.n_scale_reanchors += 1
+        log.info("keyframe %d: the floor is back, %.2f x the camera height below the camera (the scale drifted "
+                 "while it was out of view); tied to it again", k, fit.camera_height_m / self.camera_height_m)
+        return mask, fit
+
+    # ------------------------------------------------------------------ which floor they are tied to
+    def judge_mount(self, k: int, calibrating: bool) -> bool:
+        """``ground.mount_calibration`` auto: switch to the learnt floor normal once its tilt is significant.
+        Returns whether it switched at keyframe k (the caller then releases the wheel calibration's scale).
+
+        Until then the floor points were tied to the base's xy plane, which a tilted mount makes the wrong
+        floor. So at the switch the window's floor landmarks are re-tied along the learnt normal
+        (``retie_window_floor``), and since the scale they gave also went into the wheel calibration,
+        which its slow random walk would carry for tens of metres, the calibration's scale is released
+        once (its next state joins with a random walk as wide as its prior). Measured on loops whose
+        camera.yaml is 0.5 / 1 / -1 deg off: 0.13-0.26 m -> 0.010-0.021 m (README, mount study)."""
+        if (self.cfg.ground.mount_calibration is not MountCalibration.AUTO or self.mount_normal_used
+                or not self.floor_attitude.significant()):
+            return False
+        self.mount_normal_used = self.retie_pending = True
+        tx, ty = self.floor_attitude.tilt_deg()
+        released = ", and the wheel calibration's scale is released" if calibrating else ""
+        log.warning("keyframe %d: the floor is tilted %.2f deg in the base frame (T_base_cam's pitch or roll looks "
+                    "off by that): floor heights are measured along the learnt normal from here on%s", k,
+                    float(np.hypot(tx, ty)), released)
+        return True
+
+    def level_up(self, k: int, w0: int, T_guess: np.ndarray, fit: PlaneFit | None) -> np.ndarray | None:
+        """The floor's normal (world) to measure keyframe k's floor points along when the base rocks,
+        else None (the native factor in the keyframe's own base frame); ``w0`` is the window's start.
+
+        Measured on 20 rendered sequences rocking by 0.7-2 deg (README, Performance): ATE 0.42x-1.71x of
+        the native factor's, geometric mean 0.87x; wheel scale 0.02-0.59% off (mean 0.22%) instead of
+        0.02-0.82% (mean 0.32%). Level runs and the ramp never reach ``ground.rocking_jitter_deg``, so
+        they keep the native factor, which also holds each keyframe's attitude to the floor (the level
+        frame everywhere cost them 1.07x on average over ten seeds, the ramp 1.25x)."""
+        g = self.cfg.ground
+        Rs = [self.kf_pose[kk][:3, :3] for kk in range(w0, k) if kk in self.kf_pose]
+        z_axes = np.array([R[:, 2] for R in Rs]).reshape(-1, 3)
+        self.base_rocking_deg = attitude_jitter_deg(z_axes) if len(z_axes) >= MIN_ROCKING_KEYFRAMES else float("nan")
+        if g.rocking_jitter_deg is None or fit is None or not self.base_rocking_deg > g.rocking_jitter_deg:
+            return None
+        if self.n_level_ground_factors == 0:
+            log.info("keyframe %d: the base rocks (median tilt change %.2f deg between keyframes): floor points "
+                     "are measured along the floor's normal while it does", k, self.base_rocking_deg)
+        n_base = self.floor_normal_base()
+        floor_normals = z_axes if n_base is None else np.array([R @ n_base for R in Rs])
+        return level_up(floor_normals, T_guess[:3, :3] @ fit.normal, g.level_select_deg)
+
+    # ------------------------------------------------------------------ ground factors
+    def birth_ground_factor(self, k: int, key: int, p_world: np.ndarray, T_guess: np.ndarray,
+                            up_world: np.ndarray | None, n_base: np.ndarray | None):
+        """A new floor landmark's ground factor at its birth keyframe k: along the base's z axis (or the
+        learnt floor normal ``n_base``) natively, or along the level frame's up when the base rocks."""
+        cfg = self.cfg
+        self.floor_normal_learnt = n_base is not None
+        if up_world is not None:
+            self.n_level_ground_factors += 1
+            self.level_frame = True
+            return fac.level_ground_factor(X(k), key, up_world, self.floor_z, self.ground_sigma_m, cfg)
+        p_base = (p_world - T_guess[:3, 3]) @ T_guess[:3, :3]
+        return fac.ground_factor(X(k), key, p_base, self.floor_offset(n_base), self.ground_sigma_m, cfg, n_base)
+
+    def retie_window_floor(self, k: int, w0: int, graph, owners: list) -> list[int]:
+        """Tie the window's floor landmarks to the floor along the learnt normal instead of the base z axis
+        (at the switch of ``judge_mount``): their ground factors are replaced, so the keyframes still in
+        the window lose the scale the wrong floor gave them. Returns the factor indices to remove."""
+        self.retie_pending = False
+        n_base = self.floor_normal_base()
+        offset = self.floor_offset(n_base)
+        removed = []
+        for tid, kk, fi, p_world in self.lm.tied_to_floor(w0):
+            T = self.kf_pose[kk]
+            p_base = (p_world - T[:3, 3]) @ T[:3, :3]
+            key = self.lm.landmarks[tid].key
+            graph.add(fac.ground_factor(X(kk), key, p_base, offset, self.ground_sigma_m, self.cfg, n_base))
+            owners.append((tid, kk, True))
+            self.lm.drop_factor(tid, kk, fi)
+            removed.append(fi)
+        log.info("keyframe %d: %d floor landmarks of the window re-tied along the learnt normal", k, len(removed))
+        return removed
+
+    def untie_off_floor(self, w0: int) -> None:
+        """Remove (at the next update) the ground factors of the window's floor landmarks whose height above the
+        floor of the keyframe that tied them, in the new estimate, strays from the others' (``ground.off_floor``).
+
+        Only native ground factors (``lm.ground_factor``); the level frame's, on a rocking base, are left alone.
+        Measured (README, Performance): a loop lined with 3 cm kerbs, wheels +2%: ATE SE(3) 0.041 -> 0.017 m
+        (without wheels 0.097 -> 0.023 m); 19 plain loops and figure eights 0.94x-1.31x, geometric mean 1.04."""
+        k_sigma = self.cfg.ground.untie_sigmas
+        if k_sigma is None:
+            return
+        n_base = self.floor_normal_base()
+        up = np.array([0.0, 0.0, 1.0]) if n_base is None else n_base
+        offset = self.floor_offset(n_base)
+        tied = self.lm.tied_to_floor(w0)
+        if not tied:
+            return
+        # Height along ``up`` in the tying keyframe's base frame: up . R^T (p - t), for all points at once.
+        T = np.stack([self.kf_pose[kk] for _, kk, _, _ in tied])
+        p = np.stack([p_world for *_, p_world in tied])
+        heights = np.einsum("nij,ni,j->n", T[:, :3, :3], p - T[:, :3, 3], up) - offset
+        off = off_floor(heights, k_sigma, UNTIE_MIN_SIGMA_HEIGHTS * self.camera_height_m)
+        for (tid, kk, fi, _), is_off in zip(tied, off):
+            if is_off:
+                self.lm.drop_factor(tid, kk, fi)
+                self.lm.pending_removal.append(fi)
+                self.n_floor_untied += 1
+
+    # ------------------------------------------------------------------ metric scale (monocular)
+    def first_baseline(self, fo: FrontendOutput, t_unit: np.ndarray) -> float | None:
+        """The monocular start's first baseline that puts the floor at the camera's known height (the run is
+        metric from here), or None (no floor plane in the first two keyframes: up to scale for now)."""
+        baseline = self._two_view_ground_baseline(fo, t_unit) if self.use_ground else None
+        if baseline is not None:
+            self.metric = True
+            log.info("monocular start: the floor plane sets the first baseline to %.3f m (metric)", baseline)
+        elif self.use_ground:
+            log.warning("monocular start: no floor plane in the first two keyframes; the run is up to scale until the "
+                        "floor comes into view")
+        return baseline
+
+    def _two_view_ground_baseline(self, fo: FrontendOutput, t_unit: np.ndarray) -> float | None:
+        """Length of the first baseline that puts the floor at the camera's known height."""
+        assert fo.R_cam_kf_cam is not None
+        T_cur_kf = make_T(fo.R_cam_kf_cam, t_unit)
+        # Both keyframes in a unit-baseline world anchored at keyframe 0's base.
+        T_b0_c1 = self.T_base_cam @ inv_T(T_cur_kf)
+        cams = LandmarkManager.camera_poses({0: np.eye(4)}, self.T_base_cam)
+        cams[1] = (T_b0_c1[:3, :3], T_b0_c1[:3, 3])
+        cur = dict(zip(fo.track_ids.tolist(), fo.pixels_undistorted))
+        cos_min = float(np.cos(np.radians(self.cfg.min_triangulation_angle_deg)))
+        pts = []
+        for tid, lst in self.lm.obs.items():
+            first = [p for kk, p, _ in lst if kk == 0]
+            if first and tid in cur:
+                p = triangulate_midpoint(self.camera, self.cfg.model_copy(update={"max_landmark_depth_m": 1e6}),
+                                         [(0, first[0]), (1, cur[tid])], cams, cos_min)
+                if p is not None:
+                    pts.append(p)
+        if len(pts) < self.cfg.ground.min_points:
+            return None
+        # Keyframe 0's base is the world: around the camera centre, the points are in the base's orientation.
+        height = camera_height_up_to_scale(np.asarray(pts) - self.T_base_cam[:3, 3], self.cfg.ground, self._rng)
+        return None if height is None else self.camera_height_m / height
+
+    def _floor_scale_now(self, k: int) -> float | None:
+        """Up to scale: the factor that would put the floor plane under the window's landmarks at the camera's
+        known height (None: no floor plane in view), as at the monocular start, with a refining second fit."""
+        _, pts = self.lm.positions()
+        T_wb = self.kf_pose[k]
+        rel = (pts - (T_wb @ self.T_base_cam)[:3, 3]) @ T_wb[:3, :3]
+        height = camera_height_up_to_scale(rel, self.cfg.ground, self._rng, refine=True)
+        return None if height is None else self.camera_height_m / height
+
+    def late_metric_start(self, k: int) -> float | None:
+        """A monocular run with no floor in its first two keyframes is up to scale until the floor comes into
+        view. When two consecutive keyframes' floor planes agree on the scale, the run is metric from keyframe k
+        on: returns the factor to rescale the trajectory so far by (None: the run stays up to scale)."""
+        scale = self._floor_scale_now(k)
+        prev, self._late_scale = self._late_scale, scale
+        if scale is None or prev is None or not floors_agree(prev, scale):
+            return None
+        self.metric, self.metric_from_keyframe = True, k
+        return float(np.sqrt(scale * prev))
