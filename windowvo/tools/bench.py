@@ -41,7 +41,7 @@ import numpy as np
 
 from ..config import apply_overrides, config_from_dict
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"  # ../shared/data beside the repository
 
 
 # The run "without ground cue": windowvo as it was before the metric-scale work (#11).
