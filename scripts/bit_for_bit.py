@@ -66,6 +66,7 @@ def _stats(path: Path) -> list[dict]:
 def _config(path: Path) -> dict:
     d = yaml.safe_load(path.read_text())
     d.pop("output", None)
+    d["sequence"] = str(Path(d["sequence"]).resolve())  # the same data reached through a link is the same
     return d
 
 

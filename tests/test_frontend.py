@@ -6,8 +6,9 @@ import pytest
 
 from windowvo.camera import CameraModel
 from windowvo.config import DetectionOrder, FrontendConfig, GateConfig, KeyframeConfig
-from windowvo.frontend.frontend import Frontend, two_view_geometry
+from windowvo.frontend.frontend import Frontend
 from windowvo.frontend.tracker import KLTTracker, ORBTracker, cell_counts, grid_select, resolve_detection_order
+from windowvo.frontend.two_view import two_view_geometry
 from windowvo.geometry import inv_T, rotation_angle
 from windowvo.synth.generate import LensPreset, SynthSpec, build_world, lens_fields
 from windowvo.synth.paths import PathKind

@@ -18,18 +18,18 @@ across a change in part of the view, which keeps the grey levels elsewhere (and 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from ..camera import CameraModel
 from ..config import FrontendConfig, GateConfig, KeyframeConfig, TrackerKind
-from ..types import Frame, FrontendOutput, GateOutcome, KeyframeReason
+from ..types import Frame, FrontendOutput, KeyframeReason
+from .gates import MIN_COMMON_TRACKS, apply_gates, keyframe_reason
 from .tracker import KLTTracker, ORBTracker, cell_counts
+from .two_view import TwoViewResult, essential_ransac, recover_relative_pose
 
-# Fewest tracks shared with the last keyframe for a two-view geometry, or for judging a standstill.
-MIN_COMMON_TRACKS = 8
 # Gain normalisation. Exposure changes are measured on a grid of cells (columns, rows): the cells whose mean
 # grey ratio to the previous frame lies within GAIN_AGREE_LOG (log) of one another agree on one; at least
 # GAIN_MIN_AGREEING of the cells must. A frame whose mean moved more than GAIN_SCENE_CHANGE_LOG away from
@@ -95,88 +95,6 @@ class GainNormalizer:
         return cv2.convertScaleAbs(image, alpha=self.offset * self.target / mean)
 
 
-@dataclass
-class TwoViewResult:
-    inlier_mask: np.ndarray  # (N,) bool, over the common tracks
-    E: np.ndarray | None = None
-    R_cur_kf: np.ndarray | None = None  # rotation taking kf-camera vectors into the current camera
-    t_cur_kf: np.ndarray | None = None  # unit translation direction (current camera frame)
-    cheirality_ratio: float = 1.0
-    rot_comp_parallax_px: float = 0.0
-
-
-def essential_ransac(xn_kf: np.ndarray, xn_cur: np.ndarray, focal: float, threshold_px: float,
-                     confidence: float) -> TwoViewResult:
-    """Essential matrix by USAC (RANSAC family) between normalised points; marks the outliers."""
-    n = len(xn_kf)
-    if n < 8:
-        return TwoViewResult(np.ones(n, bool))
-    E, mask = cv2.findEssentialMat(xn_kf, xn_cur, np.eye(3), method=cv2.USAC_DEFAULT, prob=confidence,
-                                   threshold=threshold_px / focal)
-    if E is None or mask is None or E.shape != (3, 3):
-        return TwoViewResult(np.ones(n, bool))
-    return TwoViewResult(mask.ravel().astype(bool), E)
-
-
-def recover_relative_pose(res: TwoViewResult, xn_kf: np.ndarray, xn_cur: np.ndarray, focal: float) -> TwoViewResult:
-    """Relative pose from E with the cheirality check, and the rotation-compensated parallax."""
-    inl = res.inlier_mask
-    if res.E is None or inl.sum() < 5:
-        return res
-    _, R, t, _ = cv2.recoverPose(res.E, xn_kf[inl], xn_cur[inl], np.eye(3))
-    res.R_cur_kf, res.t_cur_kf = R, t.ravel()
-    res.cheirality_ratio = cheirality_share(R, t.ravel(), xn_kf[inl], xn_cur[inl])
-    res.rot_comp_parallax_px = rotation_compensated_parallax(xn_kf[inl], xn_cur[inl], focal)
-    return res
-
-
-def rotation_compensated_parallax(xn_kf: np.ndarray, xn_cur: np.ndarray, focal: float) -> float:
-    """Median angle (as pixels at the focal length) left after the best pure rotation.
-
-    The rotation is fitted to the bearing vectors directly (orthogonal Procrustes), so the
-    measure does not depend on decomposing E, which is degenerate without translation.
-    """
-    a = np.concatenate([xn_kf, np.ones((len(xn_kf), 1))], axis=1)
-    b = np.concatenate([xn_cur, np.ones((len(xn_cur), 1))], axis=1)
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
-    b /= np.linalg.norm(b, axis=1, keepdims=True)
-    U, _, Vt = np.linalg.svd(b.T @ a)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt  # b ~ R a
-    cosang = np.clip(np.einsum("ij,ij->i", a @ R.T, b), -1.0, 1.0)
-    return float(np.median(np.arccos(cosang)) * focal)
-
-
-def cheirality_share(R: np.ndarray, t: np.ndarray, xn_kf: np.ndarray, xn_cur: np.ndarray,
-                     min_angle_deg: float = 0.3) -> float:
-    """Share of triangulable correspondences (ray angle above ``min_angle_deg``) that lie in
-    front of both cameras. Points too far to triangulate count neither way, so a scene of
-    mostly distant points (a highway) is not mistaken for a cheirality failure."""
-    a = np.concatenate([xn_kf, np.ones((len(xn_kf), 1))], axis=1) @ R.T  # kf rays in the current frame
-    b = np.concatenate([xn_cur, np.ones((len(xn_cur), 1))], axis=1)
-    # Solve l_b * b - l_a * a = t for the two depths, per point (2x2 normal equations).
-    aa = np.einsum("ij,ij->i", a, a)
-    bb = np.einsum("ij,ij->i", b, b)
-    ab = np.einsum("ij,ij->i", a, b)
-    at = a @ t
-    bt = b @ t
-    det = aa * bb - ab * ab
-    cos = ab / np.sqrt(aa * bb)
-    usable = (det > 1e-12) & (cos < np.cos(np.radians(min_angle_deg)))
-    if not usable.any():
-        return 1.0
-    la = (ab * bt - bb * at) / np.where(usable, det, 1.0)
-    lb = (aa * bt - ab * at) / np.where(usable, det, 1.0)
-    good = (la > 0) & (lb > 0) & usable
-    return float(good.sum()) / float(usable.sum())
-
-
-def two_view_geometry(xn_kf: np.ndarray, xn_cur: np.ndarray, focal: float, threshold_px: float,
-                      confidence: float) -> TwoViewResult:
-    """RANSAC and relative pose in one call."""
-    return recover_relative_pose(essential_ransac(xn_kf, xn_cur, focal, threshold_px, confidence), xn_kf, xn_cur, focal)
-
-
 def field_of_view_mask(camera: CameraModel, max_ray_angle_deg: float) -> np.ndarray | None:
     """uint8 mask, 255 where the pixel's ray lies within ``max_ray_angle_deg`` of the optical axis.
 
@@ -198,6 +116,17 @@ def pixel_sigma_scale(camera: CameraModel, pixels: np.ndarray) -> np.ndarray:
     if len(pixels) == 0 or not camera.has_distortion:
         return np.ones(len(pixels))
     return np.linalg.svd(camera.undistortion_jacobian(pixels), compute_uv=False)[:, 0]
+
+
+@dataclass
+class VersusKeyframe:
+    """What comparing a frame's tracks with the last keyframe's found (``Frontend._against_keyframe``)."""
+
+    n_common: int = 0
+    parallax_px: float = 0.0
+    two_view: TwoViewResult | None = None
+    kf_pair: tuple[np.ndarray, np.ndarray] | None = None  # the shared tracks' rays at the keyframe and now
+    outlier_pixels: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 class Frontend:
@@ -244,47 +173,10 @@ class Frontend:
     def process(self, frame: Frame, odom_motion: tuple[float, float] | None = None, force_keyframe: bool = False) -> FrontendOutput:
         """Track one frame. ``odom_motion`` is (distance m, |yaw| rad) since the last keyframe."""
         t0 = time.perf_counter()
-        image = frame.image
-        if self.clahe is not None:
-            image = self.clahe.apply(image)
-        elif self.gain is not None:
-            image = self.gain(image)
-        tracks = self.tracker.track(image, self._mask(frame))
-        xn = self.camera.undistort_normalized(tracks.pixels)
-        # The mask bounds the field of view to whole pixels; sub-pixel refinement and KLT can leave a
-        # track just past its edge. End every track beyond the bound (a ray at 90 degrees or more
-        # has no pinhole coordinates at all: nan).
-        with np.errstate(invalid="ignore"):
-            beyond = ~(np.hypot(xn[:, 0], xn[:, 1]) <= self.max_tan_ray_angle)
-        if beyond.any():
-            self.tracker.drop(tracks.ids[beyond])
-            tracks.ids, tracks.pixels, tracks.ages = tracks.ids[~beyond], tracks.pixels[~beyond], tracks.ages[~beyond]
-            xn = xn[~beyond]
-        out_pixels = np.zeros((0, 2))
-        parallax = 0.0
-        two_view = None
-        kf_pair = None
-        n_common = 0
-        if self.kf_ids is not None and self.kf_xn is not None and len(tracks.ids):
-            common, i_cur, i_kf = np.intersect1d(tracks.ids, self.kf_ids, return_indices=True)
-            n_common = len(common)
-            kf_xn = self.kf_xn
-            if n_common:
-                d = (xn[i_cur] - kf_xn[i_kf]) * self.focal
-                parallax = float(np.median(np.linalg.norm(d, axis=1)))
-            if n_common >= MIN_COMMON_TRACKS and parallax > 0.5:
-                two_view = essential_ransac(
-                    kf_xn[i_kf], xn[i_cur], self.focal, self.cfg.ransac_threshold_px, self.cfg.ransac_confidence
-                )
-                kf_pair = (kf_xn[i_kf], xn[i_cur])
-                bad_ids = common[~two_view.inlier_mask]
-                if len(bad_ids):
-                    bad = np.isin(tracks.ids, bad_ids)
-                    out_pixels = tracks.pixels[bad]
-                    self.tracker.drop(bad_ids)
-                    keep = ~bad
-                    tracks.ids, tracks.pixels, tracks.ages = tracks.ids[keep], tracks.pixels[keep], tracks.ages[keep]
-                    xn = xn[keep]
+        tracks, xn = self._track(frame)
+        tracks, xn, vs_kf = self._against_keyframe(tracks, xn)
+        out_pixels, parallax, two_view, kf_pair, n_common = (vs_kf.outlier_pixels, vs_kf.parallax_px, vs_kf.two_view,
+                                                             vs_kf.kf_pair, vs_kf.n_common)
         out = FrontendOutput(
             frame_index=frame.index,
             timestamp=frame.timestamp,
@@ -301,7 +193,8 @@ class Frontend:
         if two_view is not None:
             out.inlier_ratio = float(two_view.inlier_mask.mean())
         reason = (KeyframeReason.FIRST if self.kf_ids is None
-                  else self._keyframe_reason(out, n_common, odom_motion, force_keyframe))
+                  else keyframe_reason(out, n_common, len(self.kf_ids), self.kf_time, odom_motion, force_keyframe,
+                                       self.kf_cfg))
         if reason not in (KeyframeReason.NONE, KeyframeReason.FIRST) and two_view is not None and kf_pair is not None:
             # Pose recovery (cheirality, rotation-compensated parallax) only where the gates need it.
             recover_relative_pose(two_view, kf_pair[0], kf_pair[1], self.focal)
@@ -309,7 +202,7 @@ class Frontend:
             out.rot_comp_parallax_px = two_view.rot_comp_parallax_px
             out.R_cam_kf_cam = two_view.R_cur_kf
             out.t_dir_kf = two_view.t_cur_kf
-        self._decide_keyframe(out, reason)
+        apply_gates(out, reason, self.gate_cfg)
         if out.is_keyframe:
             self.kf_ids = out.track_ids.copy()
             self.kf_xn = xn.copy()
@@ -317,58 +210,50 @@ class Frontend:
         out.frontend_ms = (time.perf_counter() - t0) * 1000.0
         return out
 
-    def _keyframe_reason(
-        self, out: FrontendOutput, n_common: int, odom_motion: tuple[float, float] | None, force: bool
-    ) -> KeyframeReason:
-        kc = self.kf_cfg
-        tracked_ratio = n_common / max(len(self.kf_ids) if self.kf_ids is not None else 0, 1)
-        wheels_still = odom_motion is None or (
-            odom_motion[0] < kc.standstill_distance_m and odom_motion[1] < kc.standstill_rotation_rad
-        )
-        # Parallax says "still" only over tracks the keyframe shares with this frame: with none left (every
-        # track lost at once: a sudden occlusion, a light switched) it is undefined, not zero, and the loss
-        # must make a keyframe, or the keyframe reference is never renewed and no keyframe follows for the
-        # rest of a run without wheels.
-        out.standstill = n_common >= MIN_COMMON_TRACKS and out.parallax_px < kc.standstill_parallax_px \
-            and wheels_still
-        if force:
-            return KeyframeReason.LAST
-        if out.standstill:
-            return KeyframeReason.NONE
-        if out.parallax_px >= kc.min_parallax_px:
-            return KeyframeReason.PARALLAX
-        if tracked_ratio < kc.min_tracked_ratio:
-            return KeyframeReason.TRACK_LOSS
-        if out.timestamp - self.kf_time >= kc.max_interval_s:
-            return KeyframeReason.INTERVAL
-        return KeyframeReason.NONE
+    def _track(self, frame: Frame):
+        """The frame's tracks (after the gain normalisation) and their normalised rays; tracks past the
+        field-of-view bound end here."""
+        image = frame.image
+        if self.clahe is not None:
+            image = self.clahe.apply(image)
+        elif self.gain is not None:
+            image = self.gain(image)
+        tracks = self.tracker.track(image, self._mask(frame))
+        xn = self.camera.undistort_normalized(tracks.pixels)
+        # The mask bounds the field of view to whole pixels; sub-pixel refinement and KLT can leave a
+        # track just past its edge. End every track beyond the bound (a ray at 90 degrees or more
+        # has no pinhole coordinates at all: nan).
+        with np.errstate(invalid="ignore"):
+            beyond = ~(np.hypot(xn[:, 0], xn[:, 1]) <= self.max_tan_ray_angle)
+        if beyond.any():
+            self.tracker.drop(tracks.ids[beyond])
+            tracks.ids, tracks.pixels, tracks.ages = tracks.ids[~beyond], tracks.pixels[~beyond], tracks.ages[~beyond]
+            xn = xn[~beyond]
+        return tracks, xn
 
-    def _decide_keyframe(self, out: FrontendOutput, reason: KeyframeReason) -> None:
-        """Mark the frame a keyframe for ``reason`` and run the quality gates on it."""
-        gc = self.gate_cfg
-        if reason is KeyframeReason.FIRST:
-            if len(out.track_ids) >= gc.min_features:
-                out.is_keyframe, out.keyframe_reason = True, KeyframeReason.FIRST
-                out.gate = GateOutcome.PASS
-            else:
-                out.gate = GateOutcome.FEW_FEATURES
-            return
-        if reason is KeyframeReason.NONE:
-            return
-        out.is_keyframe, out.keyframe_reason = True, reason
-        # Quality gates on the candidate.
-        if len(out.track_ids) < gc.min_features:
-            out.gate, out.vision_ok = GateOutcome.FEW_FEATURES, False
-        elif out.spread < gc.min_spread:
-            out.gate, out.vision_ok = GateOutcome.POOR_SPREAD, False
-        elif out.inlier_ratio < gc.min_inlier_ratio:
-            out.gate, out.vision_ok = GateOutcome.LOW_INLIERS, False
-        elif out.rot_comp_parallax_px < gc.min_parallax_px:
-            # Rotation-only or tiny motion: existing landmarks still constrain the pose. The back end
-            # still lets tracks whose own rays diverge enough (distant scenes, older tracks) become
-            # landmarks; a pure spin gives none (each is checked for its triangulation angle).
-            out.gate, out.vision_ok = GateOutcome.LOW_PARALLAX, True
-        elif out.cheirality_ratio < gc.min_cheirality_ratio:
-            out.gate, out.vision_ok = GateOutcome.CHEIRALITY, False
-        else:
-            out.gate = GateOutcome.PASS
+    def _against_keyframe(self, tracks, xn: np.ndarray):
+        """Parallax and essential-matrix RANSAC of the tracks shared with the last keyframe; RANSAC's outliers
+        end here. Returns the surviving tracks, their rays and what the comparison found."""
+        vs = VersusKeyframe()
+        if self.kf_ids is None or self.kf_xn is None or not len(tracks.ids):
+            return tracks, xn, vs
+        common, i_cur, i_kf = np.intersect1d(tracks.ids, self.kf_ids, return_indices=True)
+        vs.n_common = len(common)
+        kf_xn = self.kf_xn
+        if vs.n_common:
+            d = (xn[i_cur] - kf_xn[i_kf]) * self.focal
+            vs.parallax_px = float(np.median(np.linalg.norm(d, axis=1)))
+        if vs.n_common >= MIN_COMMON_TRACKS and vs.parallax_px > 0.5:
+            vs.two_view = essential_ransac(
+                kf_xn[i_kf], xn[i_cur], self.focal, self.cfg.ransac_threshold_px, self.cfg.ransac_confidence
+            )
+            vs.kf_pair = (kf_xn[i_kf], xn[i_cur])
+            bad_ids = common[~vs.two_view.inlier_mask]
+            if len(bad_ids):
+                bad = np.isin(tracks.ids, bad_ids)
+                vs.outlier_pixels = tracks.pixels[bad]
+                self.tracker.drop(bad_ids)
+                keep = ~bad
+                tracks.ids, tracks.pixels, tracks.ages = tracks.ids[keep], tracks.pixels[keep], tracks.ages[keep]
+                xn = xn[keep]
+        return tracks, xn, vs

@@ -406,8 +406,8 @@ class Selection:
     odometry_source: OdometrySourceKind  # MESSAGE, TF or NONE once resolved (TF may still find nothing)
 
 
-def select_topics(bag: BagReader, rc: RosbagConfig) -> Selection:
-    # images
+def _image_choice(bag: BagReader, rc: RosbagConfig) -> Choice:
+    """The image topic: named, or the only one."""
     if rc.image_topic:
         image = _named(bag, "images", "image_topic", rc.image_topic, IMAGE_TYPES)
     else:
@@ -419,7 +419,11 @@ def select_topics(bag: BagReader, rc: RosbagConfig) -> Selection:
                            + bag.describe_topics())
         else:
             image = Choice("images", problem=f"several image topics ({', '.join(cands)}): set rosbag.image_topic")
-    # camera_info
+    return image
+
+
+def _camera_info_choice(bag: BagReader, rc: RosbagConfig, image: Choice) -> Choice:
+    """The CameraInfo topic: named, the only one, or the one beside the image topic."""
     if rc.camera_info_topic:
         info = _named(bag, "camera_info", "camera_info_topic", rc.camera_info_topic, (CAMERA_INFO,))
     else:
@@ -434,7 +438,11 @@ def select_topics(bag: BagReader, rc: RosbagConfig) -> Selection:
         else:
             info = Choice("camera_info", problem=f"several CameraInfo topics ({', '.join(cands)}): "
                           "set rosbag.camera_info_topic")
-    # ground truth
+    return info
+
+
+def _groundtruth_choice(bag: BagReader, rc: RosbagConfig) -> Choice:
+    """Ground truth: a named topic, a /tf frame pair, or the only pose topic named like ground truth."""
     if rc.groundtruth_topic:
         gt = _named(bag, "ground truth", "groundtruth_topic", rc.groundtruth_topic, GROUNDTRUTH_TYPES)
     elif rc.groundtruth_parent_frame:
@@ -452,7 +460,11 @@ def select_topics(bag: BagReader, rc: RosbagConfig) -> Selection:
         else:
             gt = Choice("ground truth", None, f"several candidates ({', '.join(cands)}); set rosbag.groundtruth_topic "
                         "to use one")
-    # wheel odometry
+    return gt
+
+
+def _odometry_choice(bag: BagReader, rc: RosbagConfig, gt: Choice) -> tuple[Choice, OdometrySourceKind]:
+    """Wheel odometry (topic or /tf) and the source it resolves to."""
     src = rc.odometry_source
     odo_cands = [c for c in _of_type(bag, (ODOMETRY,)) if c != gt.topic and not GROUNDTRUTH_NAME.search(c)]
     if src is OdometrySourceKind.NONE:
@@ -483,6 +495,16 @@ def select_topics(bag: BagReader, rc: RosbagConfig) -> Selection:
     else:
         odo = Choice("odometry", None, "no Odometry topic and no /tf: monocular run")
         resolved = OdometrySourceKind.NONE
+    return odo, resolved
+
+
+def select_topics(bag: BagReader, rc: RosbagConfig) -> Selection:
+    """The topic of each role (images, camera_info, ground truth, wheel odometry): named in the config, or
+    auto-detected; a role that cannot be decided carries its problem."""
+    image = _image_choice(bag, rc)
+    info = _camera_info_choice(bag, rc, image)
+    gt = _groundtruth_choice(bag, rc)
+    odo, resolved = _odometry_choice(bag, rc, gt)
     return Selection(image, info, gt, odo, resolved)
 
 
@@ -834,48 +856,9 @@ def _index_or_salvage(bag: BagReader, topic: str, start_ns: int | None,
     return idx, bag
 
 
-def _load(readers: list[BagReader], path: Path, rc: RosbagConfig, cam_cfg: CameraConfig | None) -> StreamedSequence:
-    bag = readers[0]
-    warnings: list[str] = []
-    sel = select_topics(bag, rc)
-    for ch in (sel.image, sel.odometry, sel.groundtruth):
-        if ch.problem:
-            raise SequenceError(ch.problem + (f" (the bag is damaged: {bag.damage})" if bag.damage else ""))
-    image_topic = sel.image.topic
-    assert image_topic is not None
-    msgtype = bag.topics[image_topic].msgtype
-    start_ns = bag.start_ns + round(rc.start_s * 1e9) if rc.start_s > 0 else None
-    stop_ns = bag.start_ns + round(rc.end_s * 1e9) if rc.end_s is not None else None
-    idx, bag = _index_or_salvage(bag, image_topic, start_ns, stop_ns)
-    readers.append(bag)
-    damage = idx.damage or bag.damage
-    if damage:
-        if len(idx.timestamps) == 0:
-            raise SequenceError(f"bag {path}: no readable image on {image_topic} ({damage})")
-        warnings.append(f"bag is damaged ({damage}): using the {len(idx.timestamps)} frames on {image_topic} "
-                        "before the damage")
-    if len(idx.timestamps) == 0:
-        window = "" if start_ns is None and stop_ns is None else " in the rosbag.start_s / end_s window"
-        raise SequenceError(f"no image on {image_topic}{window}")
-    if idx.dropped:
-        warnings.append(f"{idx.dropped} frame(s) on {image_topic} dropped: their stamp did not increase")
-    times = idx.timestamps
-    aux = read_aux(bag, sel, rc)
-    if aux.damage:
-        warnings.append(f"bag damaged while reading camera_info/odometry/tf ({aux.damage}): using what came before")
-
-    camera = _camera_model(cam_cfg, aux, sel, warnings)
-    decoder = ImageDecoder(image_topic)
-    try:
-        first = decoder.decode(idx.first_msg, msgtype)
-    except FrameError as err:
-        raise SequenceError(f"first image on {image_topic} cannot be used: {err}") from None
-    if first.shape != (camera.height, camera.width):
-        src = "the config's camera section" if cam_cfg is not None else f"camera_info on {sel.camera_info.topic}"
-        raise CalibrationError(f"{src} says {camera.width}x{camera.height} but the images on {image_topic} are "
-                               f"{first.shape[1]}x{first.shape[0]}")
-
-    # wheel odometry
+def _wheel_odometry(sel: Selection, aux: AuxData, rc: RosbagConfig,
+                    warnings: list[str]) -> tuple[WheelOdometry | None, str | None]:
+    """The bag's wheel odometry (from Odometry messages or /tf) and the base frame it names (its child)."""
     odometry = None
     odom_child: str | None = None
     if sel.odometry_source is OdometrySourceKind.MESSAGE:
@@ -892,6 +875,58 @@ def _load(readers: list[BagReader], path: Path, rc: RosbagConfig, cam_cfg: Camer
                                     f"(pairs: {', '.join(f'{p} -> {c}' for p, c in sorted(aux.tf_pairs)) or 'none'})")
             warnings.append(f"no wheel odometry: {note}")
             odom_child = None
+    return odometry, odom_child
+
+
+def _image_index(bag: BagReader, path: Path, image_topic: str, rc: RosbagConfig, readers: list[BagReader],
+                 warnings: list[str]):
+    """The image topic's index within the configured time window (salvaged up to any damage)."""
+    start_ns = bag.start_ns + round(rc.start_s * 1e9) if rc.start_s > 0 else None
+    stop_ns = bag.start_ns + round(rc.end_s * 1e9) if rc.end_s is not None else None
+    idx, bag = _index_or_salvage(bag, image_topic, start_ns, stop_ns)
+    readers.append(bag)
+    damage = idx.damage or bag.damage
+    if damage:
+        if len(idx.timestamps) == 0:
+            raise SequenceError(f"bag {path}: no readable image on {image_topic} ({damage})")
+        warnings.append(f"bag is damaged ({damage}): using the {len(idx.timestamps)} frames on {image_topic} "
+                        "before the damage")
+    if len(idx.timestamps) == 0:
+        window = "" if start_ns is None and stop_ns is None else " in the rosbag.start_s / end_s window"
+        raise SequenceError(f"no image on {image_topic}{window}")
+    if idx.dropped:
+        warnings.append(f"{idx.dropped} frame(s) on {image_topic} dropped: their stamp did not increase")
+    return idx, bag, start_ns, stop_ns
+
+
+def _load(readers: list[BagReader], path: Path, rc: RosbagConfig, cam_cfg: CameraConfig | None) -> StreamedSequence:
+    bag = readers[0]
+    warnings: list[str] = []
+    sel = select_topics(bag, rc)
+    for ch in (sel.image, sel.odometry, sel.groundtruth):
+        if ch.problem:
+            raise SequenceError(ch.problem + (f" (the bag is damaged: {bag.damage})" if bag.damage else ""))
+    image_topic = sel.image.topic
+    assert image_topic is not None
+    msgtype = bag.topics[image_topic].msgtype
+    idx, bag, start_ns, stop_ns = _image_index(bag, path, image_topic, rc, readers, warnings)
+    times = idx.timestamps
+    aux = read_aux(bag, sel, rc)
+    if aux.damage:
+        warnings.append(f"bag damaged while reading camera_info/odometry/tf ({aux.damage}): using what came before")
+
+    camera = _camera_model(cam_cfg, aux, sel, warnings)
+    decoder = ImageDecoder(image_topic)
+    try:
+        first = decoder.decode(idx.first_msg, msgtype)
+    except FrameError as err:
+        raise SequenceError(f"first image on {image_topic} cannot be used: {err}") from None
+    if first.shape != (camera.height, camera.width):
+        src = "the config's camera section" if cam_cfg is not None else f"camera_info on {sel.camera_info.topic}"
+        raise CalibrationError(f"{src} says {camera.width}x{camera.height} but the images on {image_topic} are "
+                               f"{first.shape[1]}x{first.shape[0]}")
+
+    odometry, odom_child = _wheel_odometry(sel, aux, rc, warnings)
     if odometry is not None:
         warnings.extend(check_odometry_overlap(odometry, times))
 

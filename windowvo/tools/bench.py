@@ -184,6 +184,29 @@ def case_config_data(case: SeqCase, cache: Path, out_root: Path, rerun: bool = F
     return apply_overrides(data, list(overrides))
 
 
+def _run_without_ground_cue(data: dict, out: Path):
+    """The same sequence without the ground cue and without online wheel calibration (``NO_GROUND_CUE``)."""
+    from ..config import config_from_dict
+    from ..runtime.job import run_job
+
+    cfg_nc = config_from_dict(_deep_merge(data, {**NO_GROUND_CUE, "output": str(out / "no_ground_cue"),
+                                                 "viz": {"rerun": "off"}}))
+    rep_nc = run_job(cfg_nc)
+    r_nc = rep_nc.result
+    row = {
+        "frames": r_nc.n_frames,
+        "keyframes": r_nc.n_keyframes,
+        "fps": r_nc.fps,
+        "backend_ms_median": _median(r_nc.backend_ms),
+        "backend_ms_p95": float(np.percentile(r_nc.backend_ms, 95)) if r_nc.backend_ms else float("nan"),
+        "resets": r_nc.n_resets,
+        "windowvo": _acc_row(rep_nc.accuracy),
+        "windowvo_online": _acc_row(rep_nc.online_accuracy),
+        "scale": _scale_row(r_nc),
+    }
+    return row, r_nc
+
+
 def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False,
              overrides: tuple[str, ...] = ()) -> dict:
     """One sequence (runs in a worker process): windowvo, windowvo without the ground cue and
@@ -216,22 +239,7 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False,
         "windowvo_online": _acc_row(rep.online_accuracy),
         "scale": _scale_row(r),
     }
-    # The same sequence without the ground cue and without online wheel calibration.
-    cfg_nc = config_from_dict(_deep_merge(data, {**NO_GROUND_CUE, "output": str(out / "no_ground_cue"),
-                                                 "viz": {"rerun": "off"}}))
-    rep_nc = run_job(cfg_nc)
-    r_nc = rep_nc.result
-    row["no_ground_cue"] = {
-        "frames": r_nc.n_frames,
-        "keyframes": r_nc.n_keyframes,
-        "fps": r_nc.fps,
-        "backend_ms_median": _median(r_nc.backend_ms),
-        "backend_ms_p95": float(np.percentile(r_nc.backend_ms, 95)) if r_nc.backend_ms else float("nan"),
-        "resets": r_nc.n_resets,
-        "windowvo": _acc_row(rep_nc.accuracy),
-        "windowvo_online": _acc_row(rep_nc.online_accuracy),
-        "scale": _scale_row(r_nc),
-    }
+    row["no_ground_cue"], r_nc = _run_without_ground_cue(data, out)
     base_ms = row["no_ground_cue"]["backend_ms_median"]
     row["backend_cue_cost_pct"] = 100.0 * (row["backend_ms_median"] / base_ms - 1.0) if base_ms > 0 else float("nan")
     seq = rep.sequence
