@@ -16,12 +16,12 @@ import numpy as np
 from ..camera import CameraModel, DistortionModel
 from ..config import Config
 from ..errors import CalibrationError, SequenceError
-from ..geometry import R_BASE_CAM_FORWARD, inv_T, make_T
 from .common import anchor
 from .sequence import Sequence, list_images, read_times
+from .trajectory import kitti_cam0_to_base, kitti_T_base_cam0
 
-# Height of KITTI's camera 0 above the road (KITTI set-up).
-KITTI_CAMERA_HEIGHT_M = 1.65
+# The KITTI convention (base on the road 1.65 m below camera 0, robot axes) is shared with the evaluation's
+# reader of poses.txt: KITTI_CAMERA_HEIGHT_M, kitti_T_base_cam0, kitti_cam0_to_base in io/trajectory.py.
 
 
 def read_kitti_calib(path: Path) -> tuple[np.ndarray, float]:
@@ -79,14 +79,12 @@ def load_kitti(root: Path) -> Sequence:
         raise SequenceError(f"cannot read {images[0]}")
     h, w = first.shape
     # The base lies on the road below camera 0, with robot axes (KITTI set-up: the camera is 1.65 m up).
-    T_base_cam = make_T(R_BASE_CAM_FORWARD, np.array([0.0, 0.0, KITTI_CAMERA_HEIGHT_M]))
+    T_base_cam = kitti_T_base_cam0()
     cam = CameraModel(w, h, P0[0, 0], P0[1, 1], P0[0, 2], P0[1, 2], DistortionModel.NONE, (), T_base_cam)
     times = read_times(root / "times.txt", len(images))
     gt = None
     if (root / "poses.txt").is_file():
-        T_c0_ck = read_kitti_poses(root / "poses.txt", len(images))
-        T_bc = cam.T_base_cam
-        gt = anchor(times, np.einsum("ij,njk,kl->nil", T_bc, T_c0_ck, inv_T(T_bc)))
+        gt = anchor(times, kitti_cam0_to_base(read_kitti_poses(root / "poses.txt", len(images))))
     return Sequence(root, images, times, cam, None, gt, [], name=root.name)
 
 

@@ -22,7 +22,7 @@ from ..errors import SequenceError
 from ..geometry import R_BASE_CAM_FORWARD, R_from_quat, inv_T, make_T, quat_from_R
 
 # Height of KITTI's camera 0 above the road (KITTI set-up); the same number as
-# ``windowvo.io.datasets.KITTI_CAMERA_HEIGHT_M``.
+# the KITTI loader (``windowvo.io.kitti``).
 KITTI_CAMERA_HEIGHT_M = 1.65
 KITTI_DEFAULT_DT_S = 0.1  # KITTI odometry is recorded at about 10 Hz
 TUM_COLUMNS = 8
@@ -125,7 +125,7 @@ def read_tum(path: Path) -> Trajectory:
 
 def kitti_T_base_cam0(camera_height_m: float = KITTI_CAMERA_HEIGHT_M) -> np.ndarray:
     """windowvo's KITTI base: on the road ``camera_height_m`` below camera 0, robot axes
-    (x forward, y left, z up). The convention of the KITTI loader (``io.datasets.load_kitti``)."""
+    (x forward, y left, z up). The convention of the KITTI loader (``io.kitti.load_kitti``)."""
     return make_T(R_BASE_CAM_FORWARD, np.array([0.0, 0.0, camera_height_m]))
 
 
