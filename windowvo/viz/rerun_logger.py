@@ -23,11 +23,14 @@ so the data logged per frame stays flat however long the run.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
+import subprocess
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -38,6 +41,22 @@ import rerun.blueprint as rrb
 from ..config import Config, RerunMode
 from ..geometry import quat_from_R
 from ..types import BackendStatus, Frame, FrameEstimate, FrontendOutput, GateOutcome
+from .sinks import (
+    CLOSE_TIMEOUT_S,
+    CONNECT_PROBE_S,
+    FLUSH_TIMEOUT_S,
+    SPAWN_PORT,
+    ConnectTarget,
+    SinkFailed,
+    SinkKind,
+    bounded,
+    check_disk,
+    parse_connect_url,
+    port_answers,
+    port_free,
+    remove_partial,
+    spawn_viewer,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..io.sequence import Sequence
@@ -117,6 +136,8 @@ SCALAR_FLUSH_FRAMES = 10  # scalars and path tips are sent every this many frame
 REVEAL_BLOCK = 50  # points per frozen block of a path revealed with time
 EPOCH_THRESHOLD_S = 1e8  # timestamps above this are taken as Unix time (shown as dates)
 QUEUE_FRAMES = 32  # frames the logging thread may lag behind the run before log_frame waits
+WORKER_JOIN_S = 30.0  # finish waits at most this for the logging thread to empty its queue
+WEB_PORT = 9090  # viz.rerun=serve: the web viewer's port (rerun's default)
 
 
 def _yes(flag: bool) -> str:
@@ -311,32 +332,115 @@ class RevealedPath:
 
 
 class RerunLogger:
-    def __init__(self, cfg: Config, seq: Sequence, recording_path=None):
+    """Streams a run to its Rerun sink (``viz.rerun``) from a thread of its own.
+
+    The runtime calls ``log_frame`` (and ``log_message``) per frame and ``finish`` once at the end; no call
+    waits without bound, and a sink that fails says so in one warning line (``self.warning``)."""
+
+    def __init__(self, cfg: Config, seq: Sequence, recording_path: Path | None = None):
         t_start = time.perf_counter()
         self.cfg = cfg
         self.seq = seq
         self.rec = rr.RecordingStream("windowvo", make_default=False)
         ts = np.asarray(seq.timestamps, float)
         self._epoch = bool(len(ts) and ts[0] > EPOCH_THRESHOLD_S)
-        mode = cfg.viz.rerun
-        self.path = None
-        bp = blueprint(seq, cfg)
-        if mode is RerunMode.SAVE:
-            self.path = recording_path or (cfg.output / "recording.rrd")
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.rec.save(str(self.path), default_blueprint=bp)
-        elif mode is RerunMode.SPAWN:
-            self.rec.spawn(default_blueprint=bp)
-        elif mode is RerunMode.CONNECT:
-            self.rec.connect_grpc(cfg.viz.connect_url, default_blueprint=bp)
-        elif mode is RerunMode.SERVE:
-            uri = self.rec.serve_grpc(default_blueprint=bp)
-            rr.serve_web_viewer(connect_to=uri, open_browser=False)
-            log.info("Rerun web viewer serving %s", uri)
+        self.path: Path | None = None  # the .rrd being written, if the recording goes to a file
+        self.sink = SinkKind.NONE
+        self.viewer_process: subprocess.Popen | None = None  # a viewer this run spawned (left running)
+        self.warning: str | None = None  # the one warning about the sink, once given
+        self._open_sink(blueprint(seq, cfg), recording_path or (cfg.output / "recording.rrd"))
         self._send_properties()
+        self._log_static()
+        self._init_state(ts)
+        # Encoding and logging happen in a thread of their own; the run's thread only queues frames.
+        self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_FRAMES)
+        self._failed = self.sink is SinkKind.NONE
+        self.worker_s = 0.0  # time spent in the logging thread
+        self._worker = threading.Thread(target=self._work, name="windowvo-rerun", daemon=True)
+        self._worker.start()
+        # Time the run's thread spent in this logger (set-up, queueing, end), reported as a property.
+        self.busy_s = time.perf_counter() - t_start
+
+    # ------------------------------------------------------------------ the sink
+    def _warn(self, text: str) -> None:
+        """The one warning line about the sink (later failures of the same sink stay quiet)."""
+        if self.warning is None:
+            self.warning = text
+            log.warning("%s", text)
+
+    def _open_sink(self, bp: rrb.Blueprint, path: Path) -> None:
+        """Attach the recording to ``viz.rerun``'s sink; a live sink that fails falls back to saving ``path``."""
+        mode = self.cfg.viz.rerun
+        if mode is RerunMode.OFF:
+            return
+        target = parse_connect_url(self.cfg.viz.connect_url) if mode is RerunMode.CONNECT else None
+        try:
+            if mode is RerunMode.SAVE:
+                self._save(path, bp)
+            else:
+                self._open_live(mode, target, bp)
+            return
+        except SinkFailed as err:
+            failure = f"viz.rerun={mode.value}: {err}"
+        if mode is RerunMode.SAVE:
+            self._warn(f"{failure}; the run is not recorded")
+            return
+        self.rec = rr.RecordingStream("windowvo", make_default=False)  # a fresh stream, whatever the failed one holds
+        try:
+            self._save(path, bp)
+        except SinkFailed as err:
+            self._warn(f"{failure}; saving the recording to {path} failed too ({err}): the run is not recorded")
+            return
+        self._warn(f"{failure}; the recording is saved to {path} instead (python -m windowvo.view {path.parent})")
+
+    def _save(self, path: Path, bp: rrb.Blueprint) -> None:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise SinkFailed(f"cannot create {path.parent} ({err.strerror})") from None
+        check_disk(path)
+        try:
+            self.rec.save(str(path), default_blueprint=bp)
+        except RuntimeError as err:
+            bounded(self.rec.disconnect, CLOSE_TIMEOUT_S, "windowvo-rerun-close")
+            remove_partial(path)
+            raise SinkFailed(f"cannot write {path} ({err})") from None
+        self.path, self.sink = path, SinkKind.FILE
+
+    def _open_live(self, mode: RerunMode, target: ConnectTarget | None, bp: rrb.Blueprint) -> None:
+        if mode is RerunMode.SPAWN:
+            self.viewer_process = spawn_viewer(SPAWN_PORT)
+            target = ConnectTarget(f"rerun+http://127.0.0.1:{SPAWN_PORT}/proxy", "127.0.0.1", SPAWN_PORT)
+        if target is not None:
+            reason = port_answers(target.host, target.port)
+            if reason is not None:
+                raise SinkFailed(f"no Rerun viewer answers at {target.host}:{target.port} ({reason})")
+            self._bounded_call(lambda: self.rec.connect_grpc(target.url, default_blueprint=bp),
+                               f"connecting to {target.url}")
+            self.sink = SinkKind.VIEWER
+        elif mode is RerunMode.SERVE:
+            for port in (SPAWN_PORT, WEB_PORT):
+                if not port_free(port):
+                    raise SinkFailed(f"port {port} is taken (another Rerun viewer or server?), cannot serve")
+            uris: list[str] = []
+            self._bounded_call(lambda: uris.append(self.rec.serve_grpc(default_blueprint=bp)), "serving gRPC")
+            self._bounded_call(lambda: rr.serve_web_viewer(web_port=WEB_PORT, connect_to=uris[0], open_browser=False),
+                               "serving the web viewer")
+            self.sink = SinkKind.SERVER
+            log.info("Rerun web viewer at http://127.0.0.1:%d (recording %s)", WEB_PORT, uris[0])
+
+    def _bounded_call(self, fn, what: str) -> None:
+        done, err = bounded(fn, CONNECT_PROBE_S + 5.0, "windowvo-rerun-open")
+        if not done:
+            raise SinkFailed(f"{what} took more than {CONNECT_PROBE_S + 5.0:.0f} s")
+        if err is not None:
+            raise SinkFailed(f"{what} failed ({err})")
+
+    def _log_static(self) -> None:
+        """What does not change with time: axes, camera, legend, plot and state styles."""
         rec = self.rec
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        cam = seq.camera
+        cam = self.seq.camera
         rec.log(CAM_PATH, rr.Transform3D(translation=cam.T_base_cam[:3, 3], mat3x3=cam.T_base_cam[:3, :3]),
                 static=True)
         rec.log(CAM_PATH, rr.Pinhole(image_from_camera=cam.K, width=cam.width, height=cam.height,
@@ -350,6 +454,9 @@ class RerunLogger:
                                                      colors=[GATE_RGB[g] for g in GATE_RGB]), static=True)
         rec.log("states/backend", rr.StateConfiguration(values=[s.value for s in STATUS_RGB],
                                                         colors=[STATUS_RGB[s] for s in STATUS_RGB]), static=True)
+
+    def _init_state(self, ts: np.ndarray) -> None:
+        seq = self.seq
         # Sizes in screen points (negative radii), so paths read the same on a 5 m room and a 5 km drive.
         self.online = RevealedPath("world/estimate/online", ESTIMATE_RGB, ui(2.5))
         self.keyframes = RevealedPath("world/estimate/keyframes", KEYFRAME_RGB, ui(3.0), as_points=True)
@@ -366,14 +473,6 @@ class RerunLogger:
         self.n_logged_frames = 0
         # Pixels of the tracks over the last few frames, for the tails: (ids, pixels) per frame.
         self._tail_history: list[tuple[np.ndarray, np.ndarray]] = []
-        # Encoding and logging happen in a thread of their own; the run's thread only queues frames.
-        self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_FRAMES)
-        self._failed = False
-        self.worker_s = 0.0  # time spent in the logging thread
-        self._worker = threading.Thread(target=self._work, name="windowvo-rerun", daemon=True)
-        self._worker.start()
-        # Time the run's thread spent in this logger (set-up, queueing, end), reported as a property.
-        self.busy_s = time.perf_counter() - t_start
 
     def _work(self) -> None:
         while True:
@@ -386,8 +485,9 @@ class RerunLogger:
                 if not self._failed:
                     fn(*args)
                 self.worker_s += time.perf_counter() - t_start
-            except Exception:  # the viewer must never stop the run
-                log.exception("Rerun logging failed; the rest of the run is not recorded")
+            except Exception as err:  # the viewer must never stop the run
+                self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: logging failed ({type(err).__name__}: {err}); "
+                           f"the rest of the run is not recorded")
                 self._failed = True
             finally:
                 self._queue.task_done()
@@ -541,6 +641,25 @@ class RerunLogger:
         for p in self._paths:
             p.flush(rec)
         self._frames_since_flush = 0
+        if self.sink is SinkKind.FILE:
+            self._check_file()
+
+    def _check_file(self) -> None:
+        """Drop the recording (delete the file, stop logging) when its disk runs short or a write failed:
+        a recording must never fill the disk that the trajectory and the summary still go to."""
+        assert self.path is not None
+        try:
+            check_disk(self.path)
+            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)  # raises once the file writer has died
+        except (SinkFailed, RuntimeError) as err:
+            self._drop_file(str(err))
+
+    def _drop_file(self, reason: str) -> None:
+        bounded(self.rec.disconnect, CLOSE_TIMEOUT_S, "windowvo-rerun-close")
+        remove_partial(self.path)
+        self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: writing {self.path} failed ({reason}); "
+                   f"the recording is dropped")
+        self.sink, self.path, self._failed = SinkKind.NONE, None, True
 
     def _log_camera(self, frame: Frame, fo: FrontendOutput) -> None:
         rec = self.rec
@@ -567,12 +686,34 @@ class RerunLogger:
         t_start = time.perf_counter()
         self._submit(self._finish, result, report, t_start)
         if self._worker.is_alive():
-            self._queue.put(None)
-            self._worker.join()
+            with contextlib.suppress(queue.Full):
+                self._queue.put(None, timeout=WORKER_JOIN_S)
+            self._worker.join(WORKER_JOIN_S)
         self.busy_s += time.perf_counter() - t_start
-        self.rec.flush()
-        if self.path is not None:
-            self.rec.disconnect()
+        if self._worker.is_alive():
+            self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: the recording's logging thread was still busy after "
+                       f"{WORKER_JOIN_S:.0f} s; the end of the run is not recorded")
+        self.close()
+
+    def close(self) -> None:
+        """Flush and close the sink, each step bounded in time (idempotent; ``finish`` calls it). A live
+        viewer that does not take the data in time gets one warning; the run goes on regardless."""
+        if self.sink is SinkKind.NONE and self.path is None:
+            bounded(self.rec.disconnect, CLOSE_TIMEOUT_S, "windowvo-rerun-close")
+            return
+        sink, where = self.sink, self.path or self.cfg.viz.connect_url
+        if self.sink is SinkKind.FILE:
+            self._check_file()
+        if self.sink is not SinkKind.NONE:
+            done, err = bounded(lambda: self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S), FLUSH_TIMEOUT_S + 2.0,
+                                "windowvo-rerun-flush")
+            if not done or err is not None:
+                reason = f"not within {FLUSH_TIMEOUT_S:.0f} s" if not done else str(err)
+                self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: the end of the recording did not reach the "
+                           f"{sink.value} ({where}): {reason}")
+        if sink is not SinkKind.SERVER:  # a served recording lives as long as this process
+            bounded(self.rec.disconnect, CLOSE_TIMEOUT_S, "windowvo-rerun-close")
+        self.sink = SinkKind.NONE if sink is not SinkKind.SERVER else sink
 
     def _finish(self, result: RunResult, report, t_start: float) -> None:
         self.flush()
