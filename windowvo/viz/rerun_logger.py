@@ -285,6 +285,16 @@ def tail_starts(history: list[tuple[np.ndarray, np.ndarray]], ids: np.ndarray) -
     return start
 
 
+def close_stream(rec: rr.RecordingStream, timeout_s: float = CLOSE_TIMEOUT_S) -> bool:
+    """Close all of ``rec``'s sinks, waiting at most ``CLOSE_TIMEOUT_S``. When that is not enough (a viewer
+    that accepted the connection but takes no data), rerun's exit hook is unregistered as well: it would
+    otherwise wait for the same sink, without bound, when the process exits."""
+    done, _err = bounded(rec.disconnect, timeout_s, "windowvo-rerun-close")
+    if not done:
+        rr.unregister_shutdown()
+    return done
+
+
 def _transform(T: np.ndarray) -> rr.Transform3D:
     q = quat_from_R(T[:3, :3])
     return rr.Transform3D(translation=T[:3, 3], quaternion=rr.Quaternion(xyzw=q))
@@ -402,7 +412,7 @@ class RerunLogger:
         try:
             self.rec.save(str(path), default_blueprint=bp)
         except RuntimeError as err:
-            bounded(self.rec.disconnect, CLOSE_TIMEOUT_S, "windowvo-rerun-close")
+            close_stream(self.rec)
             remove_partial(path)
             raise SinkFailed(f"cannot write {path} ({err})") from None
         self.path, self.sink = path, SinkKind.FILE
@@ -643,6 +653,11 @@ class RerunLogger:
         self._frames_since_flush = 0
         if self.sink is SinkKind.FILE:
             self._check_file()
+        elif self.viewer_process is not None and self.viewer_process.poll() is not None:
+            self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: the viewer exited during the run (code "
+                       f"{self.viewer_process.returncode}); the rest of the run is not recorded")
+            close_stream(self.rec)
+            self.sink, self._failed = SinkKind.NONE, True
 
     def _check_file(self) -> None:
         """Drop the recording (delete the file, stop logging) when its disk runs short or a write failed:
@@ -655,7 +670,7 @@ class RerunLogger:
             self._drop_file(str(err))
 
     def _drop_file(self, reason: str) -> None:
-        bounded(self.rec.disconnect, CLOSE_TIMEOUT_S, "windowvo-rerun-close")
+        close_stream(self.rec)
         remove_partial(self.path)
         self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: writing {self.path} failed ({reason}); "
                    f"the recording is dropped")
@@ -699,20 +714,23 @@ class RerunLogger:
         """Flush and close the sink, each step bounded in time (idempotent; ``finish`` calls it). A live
         viewer that does not take the data in time gets one warning; the run goes on regardless."""
         if self.sink is SinkKind.NONE and self.path is None:
-            bounded(self.rec.disconnect, CLOSE_TIMEOUT_S, "windowvo-rerun-close")
+            close_stream(self.rec)
             return
         sink, where = self.sink, self.path or self.cfg.viz.connect_url
+        flushed = True
         if self.sink is SinkKind.FILE:
             self._check_file()
         if self.sink is not SinkKind.NONE:
             done, err = bounded(lambda: self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S), FLUSH_TIMEOUT_S + 2.0,
                                 "windowvo-rerun-flush")
-            if not done or err is not None:
+            flushed = done and err is None
+            if not flushed:
                 reason = f"not within {FLUSH_TIMEOUT_S:.0f} s" if not done else str(err)
                 self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: the end of the recording did not reach the "
                            f"{sink.value} ({where}): {reason}")
         if sink is not SinkKind.SERVER:  # a served recording lives as long as this process
-            bounded(self.rec.disconnect, CLOSE_TIMEOUT_S, "windowvo-rerun-close")
+            # After a failed flush, closing would only wait for the same sink: a short wait then.
+            close_stream(self.rec, CLOSE_TIMEOUT_S if flushed else 1.0)
         self.sink = SinkKind.NONE if sink is not SinkKind.SERVER else sink
 
     def _finish(self, result: RunResult, report, t_start: float) -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import enum
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -29,6 +30,7 @@ from ..errors import ConfigError
 CONNECT_SCHEMES = ("rerun", "rerun+http", "rerun+https")
 CONNECT_PROBE_S = 3.0  # a viewer to connect to must accept a TCP connection within this
 SPAWN_WAIT_S = 15.0  # a spawned viewer must listen on its port within this (else killed)
+SPAWN_GRACE_S = 2.0  # ... and must still run this long after it listens (it opens its window then)
 SPAWN_PORT = 9876  # rerun's default viewer port
 FLUSH_TIMEOUT_S = 5.0  # the recording's final flush waits at most this
 CLOSE_TIMEOUT_S = 7.0  # closing the sinks waits at most this (gRPC waits up to 5 s for a last try)
@@ -131,7 +133,7 @@ def _last_line(fh: Any) -> str:
         lines = [ln.strip() for ln in fh.read().decode("utf-8", "replace").splitlines() if ln.strip()]
         for ln in reversed(lines):
             if "rror" in ln:  # Error: / ERROR
-                return ln[-200:]
+                return re.sub(r" at \S+\.rs:\d+:", ":", ln)[-200:]  # without the Rust source location
         return lines[-1][-200:] if lines else ""
     return ""
 
@@ -179,9 +181,17 @@ def _await_listening(proc: subprocess.Popen, err: Any, port: int, wait_s: float)
             reason = _last_line(err)
             raise SinkFailed(f"the viewer exited at start (code {proc.returncode})" + (f": {reason}" if reason else ""))
         if port_answers("127.0.0.1", port, 0.5) is None:
-            return
+            break
         time.sleep(0.1)
-    raise SinkFailed(f"the viewer did not listen on port {port} within {wait_s:.0f} s")
+    else:
+        raise SinkFailed(f"the viewer did not listen on port {port} within {wait_s:.0f} s")
+    # The viewer listens before it opens its window: one that cannot open it exits right after.
+    try:
+        code = proc.wait(timeout=SPAWN_GRACE_S)
+    except subprocess.TimeoutExpired:
+        return
+    reason = _last_line(err)
+    raise SinkFailed(f"the viewer exited at start (code {code})" + (f": {reason}" if reason else ""))
 
 
 def disk_room(path: Path) -> int:
@@ -195,8 +205,10 @@ def disk_room(path: Path) -> int:
         return 0
 
 
-def check_disk(path: Path, reserve: int = DISK_RESERVE_BYTES) -> None:
-    """Raise :class:`SinkFailed` when the disk of ``path`` has less room than the reserve."""
+def check_disk(path: Path, reserve: int | None = None) -> None:
+    """Raise :class:`SinkFailed` when the disk of ``path`` has less room than the reserve
+    (``DISK_RESERVE_BYTES`` unless given)."""
+    reserve = DISK_RESERVE_BYTES if reserve is None else reserve
     room = disk_room(path)
     if room < reserve:
         raise SinkFailed(f"the disk of {path.parent} has {room / 2**20:.1f} MiB left (under the "
