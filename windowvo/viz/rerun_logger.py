@@ -38,25 +38,11 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..config import Config, RerunMode
+from ..config import Config
 from ..geometry import quat_from_R
 from ..types import BackendStatus, Frame, FrameEstimate, FrontendOutput, GateOutcome
-from .sinks import (
-    CLOSE_TIMEOUT_S,
-    CONNECT_PROBE_S,
-    FLUSH_TIMEOUT_S,
-    SPAWN_PORT,
-    ConnectTarget,
-    SinkFailed,
-    SinkKind,
-    bounded,
-    check_disk,
-    parse_connect_url,
-    port_answers,
-    port_free,
-    remove_partial,
-    spawn_viewer,
-)
+from .opening import close_stream, open_sink
+from .sinks import CLOSE_TIMEOUT_S, FLUSH_TIMEOUT_S, SinkFailed, SinkKind, bounded, check_disk, remove_partial
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..io.sequence import Sequence
@@ -137,7 +123,6 @@ REVEAL_BLOCK = 50  # points per frozen block of a path revealed with time
 EPOCH_THRESHOLD_S = 1e8  # timestamps above this are taken as Unix time (shown as dates)
 QUEUE_FRAMES = 32  # frames the logging thread may lag behind the run before log_frame waits
 WORKER_JOIN_S = 30.0  # finish waits at most this for the logging thread to empty its queue
-WEB_PORT = 9090  # viz.rerun=serve: the web viewer's port (rerun's default)
 
 
 def _yes(flag: bool) -> str:
@@ -285,16 +270,6 @@ def tail_starts(history: list[tuple[np.ndarray, np.ndarray]], ids: np.ndarray) -
     return start
 
 
-def close_stream(rec: rr.RecordingStream, timeout_s: float = CLOSE_TIMEOUT_S) -> bool:
-    """Close all of ``rec``'s sinks, waiting at most ``CLOSE_TIMEOUT_S``. When that is not enough (a viewer
-    that accepted the connection but takes no data), rerun's exit hook is unregistered as well: it would
-    otherwise wait for the same sink, without bound, when the process exits."""
-    done, _err = bounded(rec.disconnect, timeout_s, "windowvo-rerun-close")
-    if not done:
-        rr.unregister_shutdown()
-    return done
-
-
 def _transform(T: np.ndarray) -> rr.Transform3D:
     q = quat_from_R(T[:3, :3])
     return rr.Transform3D(translation=T[:3, 3], quaternion=rr.Quaternion(xyzw=q))
@@ -351,14 +326,16 @@ class RerunLogger:
         t_start = time.perf_counter()
         self.cfg = cfg
         self.seq = seq
-        self.rec = rr.RecordingStream("windowvo", make_default=False)
         ts = np.asarray(seq.timestamps, float)
         self._epoch = bool(len(ts) and ts[0] > EPOCH_THRESHOLD_S)
-        self.path: Path | None = None  # the .rrd being written, if the recording goes to a file
-        self.sink = SinkKind.NONE
-        self.viewer_process: subprocess.Popen | None = None  # a viewer this run spawned (left running)
         self.warning: str | None = None  # the one warning about the sink, once given
-        self._open_sink(blueprint(seq, cfg), recording_path or (cfg.output / "recording.rrd"))
+        opened = open_sink(cfg, blueprint(seq, cfg), recording_path or (cfg.output / "recording.rrd"))
+        self.rec = opened.rec
+        self.sink = opened.kind
+        self.path: Path | None = opened.path  # the .rrd being written, if the recording goes to a file
+        self.viewer_process: subprocess.Popen | None = opened.viewer_process  # a viewer this run spawned
+        if opened.warning is not None:
+            self._warn(opened.warning)
         self._send_properties()
         self._log_static()
         self._init_state(ts)
@@ -377,74 +354,6 @@ class RerunLogger:
         if self.warning is None:
             self.warning = text
             log.warning("%s", text)
-
-    def _open_sink(self, bp: rrb.Blueprint, path: Path) -> None:
-        """Attach the recording to ``viz.rerun``'s sink; a live sink that fails falls back to saving ``path``."""
-        mode = self.cfg.viz.rerun
-        if mode is RerunMode.OFF:
-            return
-        target = parse_connect_url(self.cfg.viz.connect_url) if mode is RerunMode.CONNECT else None
-        try:
-            if mode is RerunMode.SAVE:
-                self._save(path, bp)
-            else:
-                self._open_live(mode, target, bp)
-            return
-        except SinkFailed as err:
-            failure = f"viz.rerun={mode.value}: {err}"
-        if mode is RerunMode.SAVE:
-            self._warn(f"{failure}; the run is not recorded")
-            return
-        self.rec = rr.RecordingStream("windowvo", make_default=False)  # a fresh stream, whatever the failed one holds
-        try:
-            self._save(path, bp)
-        except SinkFailed as err:
-            self._warn(f"{failure}; saving the recording to {path} failed too ({err}): the run is not recorded")
-            return
-        self._warn(f"{failure}; the recording is saved to {path} instead (python -m windowvo.view {path.parent})")
-
-    def _save(self, path: Path, bp: rrb.Blueprint) -> None:
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise SinkFailed(f"cannot create {path.parent} ({err.strerror})") from None
-        check_disk(path)
-        try:
-            self.rec.save(str(path), default_blueprint=bp)
-        except RuntimeError as err:
-            close_stream(self.rec)
-            remove_partial(path)
-            raise SinkFailed(f"cannot write {path} ({err})") from None
-        self.path, self.sink = path, SinkKind.FILE
-
-    def _open_live(self, mode: RerunMode, target: ConnectTarget | None, bp: rrb.Blueprint) -> None:
-        if mode is RerunMode.SPAWN:
-            self.viewer_process = spawn_viewer(SPAWN_PORT)
-            target = ConnectTarget(f"rerun+http://127.0.0.1:{SPAWN_PORT}/proxy", "127.0.0.1", SPAWN_PORT)
-        if target is not None:
-            reason = port_answers(target.host, target.port)
-            if reason is not None:
-                raise SinkFailed(f"no Rerun viewer answers at {target.host}:{target.port} ({reason})")
-            self._bounded_call(lambda: self.rec.connect_grpc(target.url, default_blueprint=bp),
-                               f"connecting to {target.url}")
-            self.sink = SinkKind.VIEWER
-        elif mode is RerunMode.SERVE:
-            for port in (SPAWN_PORT, WEB_PORT):
-                if not port_free(port):
-                    raise SinkFailed(f"port {port} is taken (another Rerun viewer or server?), cannot serve")
-            uris: list[str] = []
-            self._bounded_call(lambda: uris.append(self.rec.serve_grpc(default_blueprint=bp)), "serving gRPC")
-            self._bounded_call(lambda: rr.serve_web_viewer(web_port=WEB_PORT, connect_to=uris[0], open_browser=False),
-                               "serving the web viewer")
-            self.sink = SinkKind.SERVER
-            log.info("Rerun web viewer at http://127.0.0.1:%d (recording %s)", WEB_PORT, uris[0])
-
-    def _bounded_call(self, fn, what: str) -> None:
-        done, err = bounded(fn, CONNECT_PROBE_S + 5.0, "windowvo-rerun-open")
-        if not done:
-            raise SinkFailed(f"{what} took more than {CONNECT_PROBE_S + 5.0:.0f} s")
-        if err is not None:
-            raise SinkFailed(f"{what} failed ({err})")
 
     def _log_static(self) -> None:
         """What does not change with time: axes, camera, legend, plot and state styles."""
