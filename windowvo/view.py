@@ -10,23 +10,24 @@ import argparse
 import sys
 from pathlib import Path
 
+from .errors import WindowVOError, cli_error
 
-def main(argv=None) -> int:
+PROG = "windowvo.view"
+
+
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m windowvo.view", description=__doc__.splitlines()[0].strip("`"))
     p.add_argument("path", help="a run's output folder (holding recording.rrd) or an .rrd file")
     p.add_argument("--web", action="store_true", help="serve the web viewer instead of a native window")
     a = p.parse_args(argv)
-    path = Path(a.path)
-    rrd = path / "recording.rrd" if path.is_dir() else path
-    if not rrd.is_file():
-        print(f"windowvo.view: error: no recording at {rrd} (run with viz.rerun=save)", file=sys.stderr)
-        return 2
-    import subprocess
+    from .viz.viewer import open_recording
 
-    cmd = [sys.executable, "-m", "rerun", str(rrd)]
-    if a.web:
-        cmd.insert(3, "--web-viewer")
-    return subprocess.call(cmd)
+    try:
+        return open_recording(Path(a.path), web=a.web)
+    except WindowVOError as err:
+        return cli_error(err, PROG)
+    except KeyboardInterrupt:  # Ctrl-C before the viewer started
+        return 130
 
 
 if __name__ == "__main__":

@@ -23,11 +23,14 @@ so the data logged per frame stays flat however long the run.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
+import subprocess
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -35,9 +38,11 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..config import Config, RerunMode
+from ..config import Config
 from ..geometry import quat_from_R
 from ..types import BackendStatus, Frame, FrameEstimate, FrontendOutput, GateOutcome
+from .opening import close_stream, open_sink
+from .sinks import CLOSE_TIMEOUT_S, FLUSH_TIMEOUT_S, SinkFailed, SinkKind, bounded, check_disk, remove_partial
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..io.sequence import Sequence
@@ -117,6 +122,7 @@ SCALAR_FLUSH_FRAMES = 10  # scalars and path tips are sent every this many frame
 REVEAL_BLOCK = 50  # points per frozen block of a path revealed with time
 EPOCH_THRESHOLD_S = 1e8  # timestamps above this are taken as Unix time (shown as dates)
 QUEUE_FRAMES = 32  # frames the logging thread may lag behind the run before log_frame waits
+WORKER_JOIN_S = 30.0  # finish waits at most this for the logging thread to empty its queue
 
 
 def _yes(flag: bool) -> str:
@@ -311,32 +317,49 @@ class RevealedPath:
 
 
 class RerunLogger:
-    def __init__(self, cfg: Config, seq: Sequence, recording_path=None):
+    """Streams a run to its Rerun sink (``viz.rerun``) from a thread of its own.
+
+    The runtime calls ``log_frame`` (and ``log_message``) per frame and ``finish`` once at the end; no call
+    waits without bound, and a sink that fails says so in one warning line (``self.warning``)."""
+
+    def __init__(self, cfg: Config, seq: Sequence, recording_path: Path | None = None):
         t_start = time.perf_counter()
         self.cfg = cfg
         self.seq = seq
-        self.rec = rr.RecordingStream("windowvo", make_default=False)
         ts = np.asarray(seq.timestamps, float)
         self._epoch = bool(len(ts) and ts[0] > EPOCH_THRESHOLD_S)
-        mode = cfg.viz.rerun
-        self.path = None
-        bp = blueprint(seq, cfg)
-        if mode is RerunMode.SAVE:
-            self.path = recording_path or (cfg.output / "recording.rrd")
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.rec.save(str(self.path), default_blueprint=bp)
-        elif mode is RerunMode.SPAWN:
-            self.rec.spawn(default_blueprint=bp)
-        elif mode is RerunMode.CONNECT:
-            self.rec.connect_grpc(cfg.viz.connect_url, default_blueprint=bp)
-        elif mode is RerunMode.SERVE:
-            uri = self.rec.serve_grpc(default_blueprint=bp)
-            rr.serve_web_viewer(connect_to=uri, open_browser=False)
-            log.info("Rerun web viewer serving %s", uri)
+        self.warning: str | None = None  # the one warning about the sink, once given
+        opened = open_sink(cfg, blueprint(seq, cfg), recording_path or (cfg.output / "recording.rrd"))
+        self.rec = opened.rec
+        self.sink = opened.kind
+        self.path: Path | None = opened.path  # the .rrd being written, if the recording goes to a file
+        self.viewer_process: subprocess.Popen | None = opened.viewer_process  # a viewer this run spawned
+        if opened.warning is not None:
+            self._warn(opened.warning)
         self._send_properties()
+        self._log_static()
+        self._init_state(ts)
+        # Encoding and logging happen in a thread of their own; the run's thread only queues frames.
+        self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_FRAMES)
+        self._failed = self.sink is SinkKind.NONE
+        self.worker_s = 0.0  # time spent in the logging thread
+        self._worker = threading.Thread(target=self._work, name="windowvo-rerun", daemon=True)
+        self._worker.start()
+        # Time the run's thread spent in this logger (set-up, queueing, end), reported as a property.
+        self.busy_s = time.perf_counter() - t_start
+
+    # ------------------------------------------------------------------ the sink
+    def _warn(self, text: str) -> None:
+        """The one warning line about the sink (later failures of the same sink stay quiet)."""
+        if self.warning is None:
+            self.warning = text
+            log.warning("%s", text)
+
+    def _log_static(self) -> None:
+        """What does not change with time: axes, camera, legend, plot and state styles."""
         rec = self.rec
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        cam = seq.camera
+        cam = self.seq.camera
         rec.log(CAM_PATH, rr.Transform3D(translation=cam.T_base_cam[:3, 3], mat3x3=cam.T_base_cam[:3, :3]),
                 static=True)
         rec.log(CAM_PATH, rr.Pinhole(image_from_camera=cam.K, width=cam.width, height=cam.height,
@@ -350,6 +373,9 @@ class RerunLogger:
                                                      colors=[GATE_RGB[g] for g in GATE_RGB]), static=True)
         rec.log("states/backend", rr.StateConfiguration(values=[s.value for s in STATUS_RGB],
                                                         colors=[STATUS_RGB[s] for s in STATUS_RGB]), static=True)
+
+    def _init_state(self, ts: np.ndarray) -> None:
+        seq = self.seq
         # Sizes in screen points (negative radii), so paths read the same on a 5 m room and a 5 km drive.
         self.online = RevealedPath("world/estimate/online", ESTIMATE_RGB, ui(2.5))
         self.keyframes = RevealedPath("world/estimate/keyframes", KEYFRAME_RGB, ui(3.0), as_points=True)
@@ -366,14 +392,6 @@ class RerunLogger:
         self.n_logged_frames = 0
         # Pixels of the tracks over the last few frames, for the tails: (ids, pixels) per frame.
         self._tail_history: list[tuple[np.ndarray, np.ndarray]] = []
-        # Encoding and logging happen in a thread of their own; the run's thread only queues frames.
-        self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_FRAMES)
-        self._failed = False
-        self.worker_s = 0.0  # time spent in the logging thread
-        self._worker = threading.Thread(target=self._work, name="windowvo-rerun", daemon=True)
-        self._worker.start()
-        # Time the run's thread spent in this logger (set-up, queueing, end), reported as a property.
-        self.busy_s = time.perf_counter() - t_start
 
     def _work(self) -> None:
         while True:
@@ -386,8 +404,9 @@ class RerunLogger:
                 if not self._failed:
                     fn(*args)
                 self.worker_s += time.perf_counter() - t_start
-            except Exception:  # the viewer must never stop the run
-                log.exception("Rerun logging failed; the rest of the run is not recorded")
+            except Exception as err:  # the viewer must never stop the run
+                self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: logging failed ({type(err).__name__}: {err}); "
+                           f"the rest of the run is not recorded")
                 self._failed = True
             finally:
                 self._queue.task_done()
@@ -541,6 +560,30 @@ class RerunLogger:
         for p in self._paths:
             p.flush(rec)
         self._frames_since_flush = 0
+        if self.sink is SinkKind.FILE:
+            self._check_file()
+        elif self.viewer_process is not None and self.viewer_process.poll() is not None:
+            self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: the viewer exited during the run (code "
+                       f"{self.viewer_process.returncode}); the rest of the run is not recorded")
+            close_stream(self.rec)
+            self.sink, self._failed = SinkKind.NONE, True
+
+    def _check_file(self) -> None:
+        """Drop the recording (delete the file, stop logging) when its disk runs short or a write failed:
+        a recording must never fill the disk that the trajectory and the summary still go to."""
+        assert self.path is not None
+        try:
+            check_disk(self.path)
+            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)  # raises once the file writer has died
+        except (SinkFailed, RuntimeError) as err:
+            self._drop_file(str(err))
+
+    def _drop_file(self, reason: str) -> None:
+        close_stream(self.rec)
+        remove_partial(self.path)
+        self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: writing {self.path} failed ({reason}); "
+                   f"the recording is dropped")
+        self.sink, self.path, self._failed = SinkKind.NONE, None, True
 
     def _log_camera(self, frame: Frame, fo: FrontendOutput) -> None:
         rec = self.rec
@@ -567,12 +610,37 @@ class RerunLogger:
         t_start = time.perf_counter()
         self._submit(self._finish, result, report, t_start)
         if self._worker.is_alive():
-            self._queue.put(None)
-            self._worker.join()
+            with contextlib.suppress(queue.Full):
+                self._queue.put(None, timeout=WORKER_JOIN_S)
+            self._worker.join(WORKER_JOIN_S)
         self.busy_s += time.perf_counter() - t_start
-        self.rec.flush()
-        if self.path is not None:
-            self.rec.disconnect()
+        if self._worker.is_alive():
+            self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: the recording's logging thread was still busy after "
+                       f"{WORKER_JOIN_S:.0f} s; the end of the run is not recorded")
+        self.close()
+
+    def close(self) -> None:
+        """Flush and close the sink, each step bounded in time (idempotent; ``finish`` calls it). A live
+        viewer that does not take the data in time gets one warning; the run goes on regardless."""
+        if self.sink is SinkKind.NONE and self.path is None:
+            close_stream(self.rec)
+            return
+        sink, where = self.sink, self.path or self.cfg.viz.connect_url
+        flushed = True
+        if self.sink is SinkKind.FILE:
+            self._check_file()
+        if self.sink is not SinkKind.NONE:
+            done, err = bounded(lambda: self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S), FLUSH_TIMEOUT_S + 2.0,
+                                "windowvo-rerun-flush")
+            flushed = done and err is None
+            if not flushed:
+                reason = f"not within {FLUSH_TIMEOUT_S:.0f} s" if not done else str(err)
+                self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: the end of the recording did not reach the "
+                           f"{sink.value} ({where}): {reason}")
+        if sink is not SinkKind.SERVER:  # a served recording lives as long as this process
+            # After a failed flush, closing would only wait for the same sink: a short wait then.
+            close_stream(self.rec, CLOSE_TIMEOUT_S if flushed else 1.0)
+        self.sink = SinkKind.NONE if sink is not SinkKind.SERVER else sink
 
     def _finish(self, result: RunResult, report, t_start: float) -> None:
         self.flush()
