@@ -1,34 +1,8 @@
-"""``python -m windowvo.view OUTPUT_FOLDER_OR_RRD``: open a saved run in the Rerun viewer.
+"""``python -m windowvo.view``: the command line lives in :mod:`windowvo.cli.view`."""
 
-Uses the viewer shipped with rerun-sdk. On a machine without a screen, use
-``--web`` to serve the web viewer instead.
-"""
-
-from __future__ import annotations
-
-import argparse
 import sys
-from pathlib import Path
 
-from .errors import WindowVOError, cli_error
-
-PROG = "windowvo.view"
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m windowvo.view", description=__doc__.splitlines()[0].strip("`"))
-    p.add_argument("path", help="a run's output folder (holding recording.rrd) or an .rrd file")
-    p.add_argument("--web", action="store_true", help="serve the web viewer instead of a native window")
-    a = p.parse_args(argv)
-    from .viz.viewer import open_recording
-
-    try:
-        return open_recording(Path(a.path), web=a.web)
-    except WindowVOError as err:
-        return cli_error(err, PROG)
-    except KeyboardInterrupt:  # Ctrl-C before the viewer started
-        return 130
-
+from .cli.view import main
 
 if __name__ == "__main__":
     sys.exit(main())
