@@ -133,3 +133,16 @@ def test_no_private_name_imported_from_another_module():
 def test_every_module_says_what_it_owns():
     bare = [m for m, p in MODULES.items() if ast.get_docstring(ast.parse(p.read_text())) is None]
     assert not bare, f"modules without a docstring: {bare}"
+
+
+def test_every_relative_import_names_a_module_of_the_package():
+    """A relative import inside a function runs only when called: one that points nowhere (a module moved to
+    another folder) must fail here, not in a user's run."""
+    broken = []
+    for module, path in MODULES.items():
+        for node in _imports(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level > 0:
+                target = _resolve(module, path, node)
+                if target not in MODULES:
+                    broken.append(f"{module}: from {'.' * node.level}{node.module or ''} -> {target}")
+    assert not broken, "\n".join(broken)
