@@ -43,7 +43,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from ..config import ConfigError, DatasetKind, RerunMode, config_from_dict, read_yaml_mapping
+from ..config import ConfigError, DatasetKind, RerunMode, config_from_dict, read_yaml_mapping, validation_problems
 from .executors import ExecutorKind, Task, TaskOutcome, TaskStatus, make_executor
 
 RUN_MARKER = "batch_run.json"
@@ -97,16 +97,8 @@ class BatchSpec(_SpecModel):
 
 
 def _spec_error(path: Path, err: ValidationError) -> ConfigError:
-    first = err.errors()[0]
-    loc = ".".join(str(p) for p in first.get("loc", ()))
-    kind = first.get("type")
-    msg = "unknown key" if kind == "extra_forbidden" else (
-        "required key is missing" if kind == "missing" else first.get("msg", "invalid value"))
-    where = f"'{loc}': " if loc else ""
-    more = f" (and {len(err.errors()) - 1} more problem(s))" if len(err.errors()) > 1 else ""
-    return ConfigError(f"invalid batch spec {path}: {where}{msg}{more}")
-
-
+    """Every problem of the spec, named, on one line."""
+    return ConfigError(f"invalid batch spec {path}: " + "; ".join(validation_problems(err)))
 
 
 def load_spec(path: Path | str) -> BatchSpec:
