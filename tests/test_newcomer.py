@@ -122,7 +122,7 @@ def test_robot_config_needs_no_sequence_or_output(tmp_path):
     assert cfg.frontend.mask == (tmp_path / "body.png").resolve()  # relative to the file
     with pytest.raises(ConfigError, match="'sequence': required key is missing"):
         load_config(tmp_path / "robot.yaml")  # a file run still needs them
-    with pytest.raises(ConfigError, match="frontend.max_features"):
+    with pytest.raises(ConfigError, match=r"frontend\.max_features"):
         load_robot_config(tmp_path / "robot.yaml", ["frontend.max_features=3"])
 
 
