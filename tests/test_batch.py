@@ -16,6 +16,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -335,3 +336,59 @@ def test_online_accuracy_is_reported_when_the_summary_has_it(tmp_path):
     rows = batch.read_results_csv(tmp_path / "r.csv")
     assert [r["ate_online_se3_m"] for r in rows] == ["", "0.08", ""]
     assert [r["ate_se3_m"] for r in rows] == ["0.05", "0.05", ""]
+
+
+def _straight(length_m: float, n: int, scale: float = 1.0):
+    from windowvo.io.trajectory import Trajectory
+
+    T = np.repeat(np.eye(4)[None], n, axis=0)
+    T[:, 0, 3] = scale * np.linspace(0.0, length_m, n)
+    return Trajectory(np.arange(n) * 0.1, T)
+
+
+def test_kitti_columns_in_results_csv_and_report(tmp_path):
+    """The KITTI relative errors reach results.csv (four columns, blank without a segment) and report.md
+    (the devkit's 100-800 m only when some run has such a segment)."""
+    from windowvo.tools.kitti_columns import kitti_errors
+
+    plan = batch.RunPlan("c00/s", "c00", "s", batch.DatasetKind.NATIVE, {}, {}, "h", tmp_path)
+    summary = {"frames": 100, "keyframes": 20, "fps": 50.0, "accuracy": {"ate_se3_rmse_m": 0.05}}
+    # 3% too long on a straight 50 m drive: t_rel 3 % of each segment's driven length (L to L + 0.1 m) over L
+    short = batch.row_from_summary(plan, summary, 1.0, False, kitti_errors(_straight(50.0, 501),
+                                                                           _straight(50.0, 501, 1.03)))
+    assert 3.0 <= short.kitti_short_t_rel_pct <= 3.0 * 10.1 / 10.0
+    assert short.kitti_short_r_rel_deg_per_100m == 0.0 and short.kitti_devkit_t_rel_pct is None
+    batch.write_results_csv(tmp_path / "r.csv", [short], [])
+    row = batch.read_results_csv(tmp_path / "r.csv")[0]
+    assert float(row["kitti_short_t_rel_pct"]) == short.kitti_short_t_rel_pct
+    assert row["kitti_devkit_t_rel_pct"] == "" and row["kitti_devkit_r_rel_deg_per_100m"] == ""
+    result = batch.BatchResult([short], 1.0, 0, 1, tmp_path, "local", 1)
+    report = batch.report_markdown(result, [], tmp_path / "spec.yaml")
+    assert "t_rel % (10-80 m) mean" in report and "100-800 m" not in report
+    assert f"| t_rel % (10-80 m) | c00 | {short.kitti_short_t_rel_pct:.3f} |" in report
+    long = batch.row_from_summary(plan, summary, 1.0, False, kitti_errors(_straight(150.0, 1501),
+                                                                          _straight(150.0, 1501, 1.03)))
+    assert long.kitti_devkit_t_rel_pct == pytest.approx(3.0, abs=0.01)
+    report = batch.report_markdown(batch.BatchResult([short, long], 1.0, 0, 2, tmp_path, "local", 1), [],
+                                   tmp_path / "spec.yaml")
+    assert "t_rel % (100-800 m) mean" in report
+
+
+def test_batch_runs_carry_their_kitti_error(local_batch, batch_dir):
+    """Each finished run's KITTI error is its own smoothed trajectory against the sequence's ground truth,
+    kept in batch_run.json (a reused run reads it there)."""
+    from windowvo.eval.kitti_metric import SegmentSet, kitti_odometry_error
+
+    _, result = local_batch
+    ok = [r for r in result.rows if r.status is TaskStatus.OK]
+    assert ok
+    for r in ok:
+        run_dir = result.out_root / "runs" / r.run_id
+        gt = read_tum(batch_dir / "seqs" / r.sequence / "groundtruth.txt")
+        for s in SegmentSet:
+            expected = kitti_odometry_error(gt, read_tum(run_dir / "trajectory.txt"), s)
+            assert r.kitti[s.value]["n_segments"] == expected.n_segments
+            assert r.kitti[s.value]["gt_path_length_m"] == pytest.approx(expected.gt_path_length_m, rel=1e-6)
+        assert json.loads((run_dir / batch.RUN_MARKER).read_text())["kitti"] == r.kitti
+    header = batch.read_results_csv(result.files["csv"])[0].keys()
+    assert {"kitti_short_t_rel_pct", "kitti_short_r_rel_deg_per_100m", "kitti_devkit_t_rel_pct"} <= set(header)

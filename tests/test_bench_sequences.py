@@ -60,6 +60,14 @@ def test_bench_case_with_and_without_ground_cue(tmp_path):
     assert row["windowvo"]["ate_se3_m"] != nc["windowvo"]["ate_se3_m"]
     assert (run_dir / "trajectories.png").is_file()
     assert row["backend_ms_median"] > 0 and nc["backend_ms_median"] > 0
+    # The KITTI relative error of windowvo's smoothed trajectory, recomputed from its file.
+    from windowvo.eval.kitti_metric import SegmentSet, kitti_odometry_error
+
+    for s in SegmentSet:
+        expected = kitti_odometry_error(gt, read_tum(run_dir / "trajectory.txt"), s)
+        got = row["windowvo"]["kitti"][s.value]
+        assert got["n_segments"] == expected.n_segments
+        assert got["gt_path_length_m"] == pytest.approx(expected.gt_path_length_m, rel=1e-6)
 
 
 def _row(name: str, kind: str, err: float) -> dict:
@@ -184,3 +192,42 @@ def test_bench_cpu_accounting_counts_threads_and_ended_children():
     after_child = _cpu_with_children_s()
     assert after_thread - before >= 0.29
     assert after_child - after_thread >= 0.29
+
+
+def _straight(length_m: float, n: int, scale: float = 1.0):
+    """A straight drive along x over ``length_m`` in ``n`` poses at 10 Hz, positions times ``scale``."""
+    from windowvo.io.trajectory import Trajectory
+
+    T = np.repeat(np.eye(4)[None], n, axis=0)
+    T[:, 0, 3] = scale * np.linspace(0.0, length_m, n)
+    return Trajectory(np.arange(n) * 0.1, T)
+
+
+def _cells(table: str) -> list[dict[str, str]]:
+    lines = table.splitlines()
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    return [dict(zip(header, (c.strip() for c in ln.strip("|").split("|")), strict=True)) for ln in lines[2:]]
+
+
+def test_sequences_table_kitti_columns():
+    """t_rel / r_rel over 10-80 m: an estimate 2% too long on a straight drive has no rotation error and a
+    t_rel of 2 % of each segment's driven length over its nominal length L (by hand: a segment ends at the
+    first pose more than L along, so it is L to L + 0.1 m long at 0.1 m spacing: 2.00-2.02 % for L = 10 m);
+    the devkit's 100-800 m columns appear only once some path is longer than 100 m, n/a for the others."""
+    from windowvo.tools.kitti_columns import kitti_errors
+
+    short = _row("loop", "synth", 0.01)
+    short["windowvo"] = {**short["windowvo"], "kitti": kitti_errors(_straight(50.0, 501), _straight(50.0, 501, 1.02))}
+    cells = _cells(bench.sequences_table([short]))
+    assert 2.0 <= float(cells[0]["t_rel % (10-80 m)"]) <= 2.0 * 10.1 / 10.0
+    assert cells[0]["r_rel deg/100 m (10-80 m)"] == "0.000"
+    assert "t_rel % (100-800 m)" not in cells[0]
+    assert cells[1]["t_rel % (10-80 m)"] == ""  # the wheel row has no KITTI numbers in this row
+
+    long = _row("kitti06", "kitti", 0.01)
+    long["windowvo"] = {**long["windowvo"], "kitti": kitti_errors(_straight(250.0, 2501), _straight(250.0, 2501, 0.97))}
+    cells = _cells(bench.sequences_table([short, long]))
+    assert cells[0]["t_rel % (100-800 m)"] == "n/a" and cells[0]["r_rel deg/100 m (100-800 m)"] == "n/a"
+    # 3% too short, segments of 100-100.1 m (and 200-200.1 m): 3.00 % to two decimals
+    assert cells[3]["t_rel % (100-800 m)"] == "3.00" and cells[3]["r_rel deg/100 m (100-800 m)"] == "0.000"
+    assert "t_rel / r_rel: the KITTI odometry metric" in bench.sequences_caption([short, long])

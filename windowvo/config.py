@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from .errors import ConfigError
 from .types import DistortionModel
+from .yamlio import safe_load_yaml
 
 log = logging.getLogger(__name__)
 
@@ -456,17 +457,24 @@ def apply_layout_defaults(data):
     return {**data, "backend": backend}
 
 
+def validation_problems(err: ValidationError) -> list[str]:
+    """Every problem of a failed validation, one short phrase each (``'frontend.max_features': ...``)."""
+    out = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e.get("loc", ()))
+        msg = e.get("msg", "invalid value")
+        if e.get("type") == "extra_forbidden":
+            msg = "unknown key"
+        elif e.get("type") == "missing":
+            msg = "required key is missing"
+        out.append(f"'{loc}': {msg}" if loc else msg)
+    return out
+
+
 def _format_validation_error(err: ValidationError) -> str:
-    first = err.errors()[0]
-    loc = ".".join(str(p) for p in first.get("loc", ()))
-    msg = first.get("msg", "invalid value")
-    if first.get("type") == "extra_forbidden":
-        msg = "unknown key"
-    elif first.get("type") == "missing":
-        msg = "required key is missing"
-    where = f"'{loc}'" if loc else "config"
-    more = f" (and {len(err.errors()) - 1} more problem(s))" if len(err.errors()) > 1 else ""
-    return f"invalid config: {where}: {msg}{more}"
+    problems = validation_problems(err)
+    head = "invalid config" if len(problems) == 1 else f"invalid config ({len(problems)} problems)"
+    return f"{head}: " + "; ".join(problems)
 
 
 def apply_overrides(data: dict, overrides: list[str]) -> dict:
@@ -479,7 +487,7 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
         if not parts:
             raise ConfigError(f"invalid override '{item}': empty key")
         try:
-            value = yaml.safe_load(raw) if raw.strip() else None
+            value = safe_load_yaml(raw) if raw.strip() else None
         except yaml.YAMLError:
             value = raw
         node = data
@@ -519,12 +527,14 @@ def config_from_dict(data: dict, base_dir: Path | None = None) -> Config:
     return cfg
 
 
-def read_yaml_mapping(path: Path, what: str, not_found: str | None = None) -> dict:
-    """A YAML file whose top level is a mapping (empty file: ``{}``), or one clear ``ConfigError``."""
+def read_yaml_mapping(path: Path | str, what: str, not_found: str | None = None) -> dict:
+    """A YAML file whose top level is a mapping (empty file: ``{}``), or one clear ``ConfigError``; floats in
+    any spelling (3.4e2, 1e-3) are read as floats."""
+    path = Path(path)
     if not path.is_file():
         raise ConfigError(not_found or f"{what} not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = safe_load_yaml(path.read_text())
     except (OSError, UnicodeDecodeError) as err:
         raise ConfigError(f"cannot read {what} {path}: {err}") from None
     except yaml.YAMLError as err:
@@ -539,12 +549,38 @@ def read_yaml_mapping(path: Path, what: str, not_found: str | None = None) -> di
 
 
 def load_config(path: Path | str, overrides: list[str] | None = None) -> Config:
+    """The run config of a YAML file (``sequence`` and ``output`` required; relative paths are relative to
+    the file); ``overrides``: ``dotted.key=value`` as on the command line. For a robot, see
+    :func:`load_robot_config`."""
     path = Path(path)
     data = read_yaml_mapping(path, "config", not_found=f"config file not found: {path}")
     data = apply_overrides(data, overrides or [])
     return config_from_dict(data, base_dir=path.parent.resolve())
 
 
-def save_config(cfg: Config, path: Path) -> None:
+# What a robot's config (the streaming API) has for the two keys only a file run needs.
+ROBOT_PLACEHOLDERS = {"sequence": ".", "output": "."}
+
+
+def robot_config_from_dict(data: dict, base_dir: Path | str | None = None) -> Config:
+    """Validate a robot's config mapping: as :func:`config_from_dict`, but ``sequence`` and ``output`` (a
+    file run's input and output folder) are not needed (when present they are kept, and unused)."""
+    if not isinstance(data, dict):
+        raise ConfigError("invalid config: the top level must be a mapping of keys to values")
+    return config_from_dict({**ROBOT_PLACEHOLDERS, **data}, None if base_dir is None else Path(base_dir))
+
+
+def load_robot_config(path: Path | str, overrides: list[str] | None = None) -> Config:
+    """The config of a robot's YAML file for :class:`windowvo.Odometry` (the streaming API): every section
+    of a run's config, without ``sequence`` or ``output`` (a robot has neither); relative paths (masks) are
+    relative to the file. ``overrides``: ``dotted.key=value``."""
+    path = Path(path)
+    data = read_yaml_mapping(path, "config", not_found=f"config file not found: {path}")
+    data = apply_overrides(data, overrides or [])
+    return robot_config_from_dict(data, base_dir=path.parent.resolve())
+
+
+def save_config(cfg: Config, path: Path | str) -> None:
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(cfg.to_yaml_dict(), sort_keys=False))

@@ -307,8 +307,8 @@ class FloorModel:
             self.metric = True
             log.info("monocular start: the floor plane sets the first baseline to %.3f m (metric)", baseline)
         elif self.use_ground:
-            log.warning("monocular start: no floor plane in the first two keyframes; the run is up to scale until the "
-                        "floor comes into view")
+            log.warning("monocular start: no floor plane in the first two keyframes yet; up to scale until the floor "
+                        "comes into view (from there metric, the trajectory before it rescaled)")
         return baseline
 
     def _two_view_ground_baseline(self, fo: FrontendOutput, t_unit: np.ndarray) -> float | None:

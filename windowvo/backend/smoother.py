@@ -184,11 +184,15 @@ class SlidingWindowBackend:
         return scale_report(self)
 
     def scale_sources(self) -> list[ScaleSource]:
-        """What fixes the metric scale of this run."""
+        """What fixes the metric scale of this run: the wheels, and the floor once it has ground factors in the
+        smoother. A monocular run that is metric owes it to the floor alone (its first baseline, or its late
+        metric start), whether or not a ground factor followed (a run ending right after the floor came into
+        view has none)."""
         out = []
         if self.use_odometry:
             out.append(ScaleSource.WHEELS_CALIBRATED if self.calibrate else ScaleSource.WHEELS)
-        if self.use_ground and self.n_ground_factors > 0:
+        floor_made_metric = self.metric and not self.use_odometry
+        if self.use_ground and (self.n_ground_factors > 0 or floor_made_metric):
             out.append(ScaleSource.GROUND_PLANE)
         return out
 

@@ -9,6 +9,7 @@ from collections.abc import Iterable
 from ..errors import WindowVOError, cli_error
 from ..tools.batch import EPILOG, BatchResult, run_batch
 from ..tools.executors import ExecutorKind, TaskStatus
+from ..tools.helptext import plain_help
 
 
 def _default_jobs() -> int:
@@ -24,7 +25,7 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m windowvo.batch",
                                 description="windowvo batch evaluation: sequences x a grid of configs, "
                                 "each run in its own process, locally or on Ray.",
-                                epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+                                epilog=plain_help(EPILOG), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("spec", help="batch spec (YAML)")
     p.add_argument("--executor", choices=[k.value for k in ExecutorKind], default=ExecutorKind.LOCAL.value)
     p.add_argument("--jobs", type=int, default=None,

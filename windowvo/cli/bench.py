@@ -26,11 +26,13 @@ from ..tools.bench import (
     sequences_table,
     synthetic_cases,
 )
+from ..tools.helptext import first_line, plain_help
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m windowvo.bench", description=_tools_bench.__doc__.splitlines()[0].strip("`"),
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=_tools_bench.__doc__)
+    p = argparse.ArgumentParser(prog="python -m windowvo.bench", description=first_line(_tools_bench.__doc__),
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog=plain_help("\n".join((_tools_bench.__doc__ or "").splitlines()[1:])))
     p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun", "memory", "bag", "modes"])
     p.add_argument("--out", default="windowvo_output/bench", help="outputs, JSON and plots")
     p.add_argument("--cache", default="windowvo_output/bench_cache", help="rendered sequences (reused)")

@@ -11,11 +11,12 @@ import yaml
 from ..config import apply_overrides, config_from_dict
 from ..errors import WindowVOError, cli_error
 from ..tools import topics as _tools_topics
+from ..tools.helptext import first_line
 from ..tools.topics import report
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m windowvo.topics", description=_tools_topics.__doc__.splitlines()[0].replace("`", ""))
+    p = argparse.ArgumentParser(prog="python -m windowvo.topics", description=first_line(_tools_topics.__doc__))
     p.add_argument("bag", help="ROS 1 .bag file, ROS 2 bag folder, or a .db3 / .mcap file")
     p.add_argument("--config", help="YAML config whose rosbag: and camera: sections apply")
     p.add_argument("overrides", nargs="*", help="dotted overrides, e.g. rosbag.image_topic=/cam0/image_raw")

@@ -4,6 +4,7 @@ at image times, and whitespace/CSV tables."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -14,18 +15,34 @@ from ..errors import CalibrationError, SequenceError
 from ..geometry import R_BASE_CAM_FORWARD, interpolate_T, make_T
 from .trajectory import Trajectory
 
+log = logging.getLogger(__name__)
+
 # A camera at the base origin looking forward (robot axes x forward, y left, z up; camera x right, y down, z forward).
 T_BASE_CAM_FORWARD = make_T(R_BASE_CAM_FORWARD, np.zeros(3))
 
 
-def camera_from_config(c: CameraConfig | None, what: str) -> CameraModel:
-    """The camera of the config's ``camera`` section (``what``: the dataset kind, for the message)."""
+# Said once, when a loader builds the camera of a ``camera`` section without T_base_cam (the default mounting).
+DEFAULT_MOUNTING_WARNING = ("camera.T_base_cam missing: camera assumed at the base origin, height 0, looking forward, "
+                            "so the floor cue is off (unless backend.ground.camera_height_m is set); set "
+                            "camera.T_base_cam (16 numbers, row major: the camera's pose in the base frame)")
+
+
+def camera_from_config(c: CameraConfig | None, what: str, warnings: list[str] | None = None) -> CameraModel:
+    """The camera of the config's ``camera`` section (``what``: the dataset kind, for the message).
+
+    Without ``T_base_cam`` the camera is at the base origin looking forward (height 0: no floor cue), and
+    :data:`DEFAULT_MOUNTING_WARNING` says so: appended to ``warnings`` (a sequence's, printed by the job)
+    when given, else logged here."""
     if c is None:
         raise CalibrationError(f"dataset '{what}' needs a 'camera' section in the config (width, height, fx, fy, cx, cy)")
+    if c.T_base_cam is None:
+        if warnings is not None:
+            warnings.append(DEFAULT_MOUNTING_WARNING)
+        else:
+            log.warning("%s", DEFAULT_MOUNTING_WARNING)
     T = np.asarray(c.T_base_cam, float).reshape(4, 4) if c.T_base_cam is not None else T_BASE_CAM_FORWARD
     return CameraModel(c.width, c.height, c.fx, c.fy, c.cx, c.cy, DistortionModel(c.distortion_model),
                        tuple(c.distortion), T)
-
 
 
 def anchor(ts: np.ndarray, T_world_base: np.ndarray) -> Trajectory:

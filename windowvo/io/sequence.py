@@ -12,17 +12,18 @@
 from __future__ import annotations
 
 import logging
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
 import cv2
 import numpy as np
 import yaml
 
 from ..camera import CameraModel, DistortionModel
+from ..config import DatasetKind
 from ..errors import CalibrationError, FrameError, SequenceError
+from ..yamlio import dump_yaml, safe_load_yaml
 from .odometry import WheelOdometry, read_odometry_csv
 from .trajectory import Trajectory, read_tum
 
@@ -109,6 +110,56 @@ class StreamedSequence(Sequence):
             self.source.close()
 
 
+BAG_SUFFIXES = (".bag", ".db3", ".mcap")
+VIDEO_SUFFIXES = (".mp4", ".mkv", ".avi", ".mov", ".webm", ".m4v", ".mpg", ".mpeg")
+
+
+def _first_with_suffix(folder: Path, suffixes: tuple[str, ...]) -> Path | None:
+    try:
+        return next((p for p in sorted(folder.iterdir()) if p.is_file() and p.suffix.lower() in suffixes), None)
+    except OSError:
+        return None
+
+
+def guess_layout(path: Path | str) -> tuple[DatasetKind, str] | None:
+    """The dataset kind another layout's folder (or file) looks like, with what it looks like, or None.
+
+    kitti: ``image_0/`` and ``calib.txt``; tum: ``rgb.txt``; euroc: ``mav0/``; rosbag: a ``.bag``, ``.db3``
+    or ``.mcap`` file (or a folder with one, or a ROS 2 ``metadata.yaml``); video: a video file (or a folder
+    with one); folder: images directly in the folder."""
+    path = Path(path)
+    if path.is_file():
+        suffix = path.suffix.lower()
+        if suffix in BAG_SUFFIXES:
+            return DatasetKind.ROSBAG, "a ROS bag"
+        return (DatasetKind.VIDEO, "a video file") if suffix in VIDEO_SUFFIXES else None
+    if not path.is_dir():
+        return None
+    if (path / "image_0").is_dir() and (path / "calib.txt").is_file():
+        return DatasetKind.KITTI, "a KITTI folder"
+    if (path / "rgb.txt").is_file():
+        return DatasetKind.TUM, "a TUM RGB-D folder"
+    if (path / "mav0").is_dir():
+        return DatasetKind.EUROC, "a EuRoC folder"
+    if (path / "metadata.yaml").is_file() or _first_with_suffix(path, BAG_SUFFIXES) is not None:
+        return DatasetKind.ROSBAG, "a ROS bag"
+    video = _first_with_suffix(path, VIDEO_SUFFIXES)
+    if video is not None:
+        return DatasetKind.VIDEO, f"a folder with a video ({video.name}; point sequence at the file)"
+    if _first_with_suffix(path, tuple(IMAGE_SUFFIXES)) is not None:
+        return DatasetKind.FOLDER, "a folder of images (no images/ subfolder)"
+    return None
+
+
+def layout_hint(path: Path | str) -> str:
+    """``: ... looks like a KITTI folder: set dataset: kitti`` for a sequence of another layout, else ``""``."""
+    guess = guess_layout(path)
+    if guess is None:
+        return ""
+    kind, what = guess
+    return f"; {Path(path).name} looks like {what}: set dataset: {kind.value}"
+
+
 def list_images(folder: Path) -> list[Path]:
     if not folder.is_dir():
         raise SequenceError(f"image folder not found: {folder}")
@@ -143,38 +194,6 @@ def read_times(path: Path, n_frames: int) -> np.ndarray:
     return t
 
 
-FLOAT_TAG = "tag:yaml.org,2002:float"
-# YAML 1.1 (PyYAML) floats need a dot and a signed exponent: 3.4e2 and 1e-3 would load as strings.
-# This accepts every spelling of YAML 1.2 and Python as well (340.0, 3.4e2, 3.4E+2, 1e-3, .5, -.5e3),
-# keeps 1_000.5, .inf and .nan, and leaves integers (340, 0x1F) to the integer resolver.
-FLOAT_PATTERN = re.compile(
-    r"""^(?:[-+]?[0-9][0-9_]*\.[0-9_]*(?:[eE][-+]?[0-9]+)?
-    |[-+]?\.[0-9][0-9_]*(?:[eE][-+]?[0-9]+)?
-    |[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+
-    |[-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+\.[0-9_]*
-    |[-+]?\.(?:inf|Inf|INF)
-    |\.(?:nan|NaN|NAN))$""", re.X)
-
-
-class _NumberLoader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` with :data:`FLOAT_PATTERN` as its float resolver."""
-
-
-_NumberLoader.yaml_implicit_resolvers = {
-    first: [(tag, rx) for tag, rx in resolvers if tag != FLOAT_TAG]
-    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
-}
-_NumberLoader.add_implicit_resolver(FLOAT_TAG, FLOAT_PATTERN, list("-+0123456789."))
-
-
-def safe_load_yaml(text: str) -> Any:
-    """``yaml.safe_load`` that reads every float spelling a user writes (3.4e2, 3.4E+2, 1e-3) as a float.
-
-    Raises ``yaml.YAMLError`` like ``yaml.safe_load``; integers, strings and the rest are unchanged.
-    """
-    return yaml.load(text, Loader=_NumberLoader)  # a SafeLoader subclass: safe
-
-
 def _number(d: dict, key: str, path: Path) -> float:
     if key not in d:
         raise CalibrationError(f"{path.name}: missing key '{key}'")
@@ -186,7 +205,9 @@ def _number(d: dict, key: str, path: Path) -> float:
     return float(v)
 
 
-def read_camera_yaml(path: Path) -> CameraModel:
+def read_camera_yaml(path: Path | str) -> CameraModel:
+    """The camera of a ``camera.yaml`` (width, height, fx, fy, cx, cy, distortion_model, distortion, T_base_cam)."""
+    path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"camera calibration not found: {path}")
     try:
@@ -235,14 +256,18 @@ def read_camera_yaml(path: Path) -> CameraModel:
     )
 
 
-def write_camera_yaml(path: Path, cam: CameraModel) -> None:
-    path.write_text(yaml.safe_dump(cam.to_dict(), sort_keys=False, default_flow_style=None))
+def write_camera_yaml(path: Path | str, cam: CameraModel) -> None:
+    """Write ``cam`` as a ``camera.yaml`` (plain numbers: :func:`read_camera_yaml` reads it back)."""
+    Path(path).write_text(dump_yaml(cam.to_dict(), default_flow_style=None))
 
 
-def load_native(root: Path, fps: float = 20.0) -> Sequence:
+def load_native(root: Path | str, fps: float = 20.0) -> Sequence:
     root = Path(root)
     if not root.is_dir():
-        raise SequenceError(f"sequence folder not found: {root}")
+        hint = layout_hint(root) if root.exists() else ""
+        raise SequenceError(f"sequence folder not found: {root}{hint}")
+    if not (root / "images").is_dir():
+        raise SequenceError(f"image folder not found: {root / 'images'}{layout_hint(root)}")
     images = list_images(root / "images")
     camera = read_camera_yaml(root / "camera.yaml")
     warnings: list[str] = []

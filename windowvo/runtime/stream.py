@@ -2,6 +2,7 @@
 
 ::
 
+    camera = read_camera_yaml("camera.yaml")       # windowvo.io.sequence; str or Path
     vo = windowvo.Odometry(camera, config)        # or windowvo.Odometry.from_config("robot.yaml", camera)
     vo.add_wheel_odometry(t, x, y, yaw)            # any rate, any time before the frame
     est = vo.process(t, image)                     # FrameEstimate: T_world_base at t, status, keyframe flag, ...
@@ -29,7 +30,7 @@ import numpy as np
 from ..backend.report import ScaleReport, plan_scale
 from ..backend.smoother import SlidingWindowBackend
 from ..camera import CameraModel
-from ..config import Config, config_from_dict, load_config
+from ..config import Config, load_robot_config, robot_config_from_dict
 from ..errors import WindowVOError
 from ..frontend.frontend import Frontend
 from ..frontend.tracker import resolve_detection_order
@@ -60,7 +61,7 @@ class TrackedFrame:
 
 def default_config() -> Config:
     """The default configuration, for callers that have no config file (no sequence, no output)."""
-    return config_from_dict({"sequence": ".", "output": "."})
+    return robot_config_from_dict({})
 
 
 class Odometry:
@@ -101,8 +102,9 @@ class Odometry:
 
     @classmethod
     def from_config(cls, config: Config | str | Path, camera: CameraModel, use_wheels: bool = True) -> Odometry:
-        """From a validated config or a YAML file (its ``sequence``/``output`` keys are not used here)."""
-        cfg = config if isinstance(config, Config) else load_config(config)
+        """From a validated config or a robot's YAML file (``str`` or ``Path``; read by
+        :func:`windowvo.config.load_robot_config`: no ``sequence`` or ``output`` needed, unused when present)."""
+        cfg = config if isinstance(config, Config) else load_robot_config(config)
         return cls(camera, cfg, use_wheels)
 
     # ------------------------------------------------------------------ inputs

@@ -43,8 +43,9 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from ..config import ConfigError, DatasetKind, RerunMode, config_from_dict, read_yaml_mapping
+from ..config import ConfigError, DatasetKind, RerunMode, config_from_dict, read_yaml_mapping, validation_problems
 from .executors import ExecutorKind, Task, TaskOutcome, TaskStatus, make_executor
+from .kitti_columns import KITTI_COLUMNS, flat_values, kitti_errors, shown_columns
 
 RUN_MARKER = "batch_run.json"
 JOB_CONFIG = "job.yaml"
@@ -97,16 +98,8 @@ class BatchSpec(_SpecModel):
 
 
 def _spec_error(path: Path, err: ValidationError) -> ConfigError:
-    first = err.errors()[0]
-    loc = ".".join(str(p) for p in first.get("loc", ()))
-    kind = first.get("type")
-    msg = "unknown key" if kind == "extra_forbidden" else (
-        "required key is missing" if kind == "missing" else first.get("msg", "invalid value"))
-    where = f"'{loc}': " if loc else ""
-    more = f" (and {len(err.errors()) - 1} more problem(s))" if len(err.errors()) > 1 else ""
-    return ConfigError(f"invalid batch spec {path}: {where}{msg}{more}")
-
-
+    """Every problem of the spec, named, on one line."""
+    return ConfigError(f"invalid batch spec {path}: " + "; ".join(validation_problems(err)))
 
 
 def load_spec(path: Path | str) -> BatchSpec:
@@ -266,19 +259,52 @@ class RunRow:
     keyframes: int | None = None
     wall_s: float | None = None
     reused: bool = False
+    # KITTI relative errors of the smoothed trajectory (``kitti_columns.kitti_errors``: per segment set)
+    kitti: dict[str, dict] = field(default_factory=dict)
+    kitti_short_t_rel_pct: float | None = None
+    kitti_short_r_rel_deg_per_100m: float | None = None
+    kitti_devkit_t_rel_pct: float | None = None
+    kitti_devkit_r_rel_deg_per_100m: float | None = None
 
 
 def _num(x: Any) -> float | None:
     return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) else None
 
 
-def row_from_summary(plan: RunPlan, summary: dict, wall_s: float | None, reused: bool) -> RunRow:
+def row_from_summary(plan: RunPlan, summary: dict, wall_s: float | None, reused: bool,
+                     kitti: dict[str, dict] | None = None) -> RunRow:
     acc = summary.get("accuracy") or {}
     online = summary.get("accuracy_online") or {}
     return RunRow(plan.run_id, plan.config_id, plan.sequence, plan.dataset.value, plan.grid_values, TaskStatus.OK,
                   "", _num(acc.get("ate_se3_rmse_m")), _num(acc.get("ate_sim3_rmse_m")),
                   _num(online.get("ate_se3_rmse_m")), _num(summary.get("fps")), summary.get("frames"),
-                  summary.get("keyframes"), wall_s, reused)
+                  summary.get("keyframes"), wall_s, reused, kitti or {}, **flat_values(kitti))
+
+
+def run_kitti(plan: RunPlan, summary: dict) -> dict[str, dict]:
+    """The KITTI relative errors of a finished run's smoothed trajectory (``trajectory.txt``) against the
+    sequence's ground truth (loaded again here, as the run loaded it); ``{}`` without ground truth, or for a
+    run up to scale whose Sim(3) scale is unknown."""
+    from .. import io
+    from ..errors import WindowVOError
+    from ..io.trajectory import read_tum
+
+    traj_path = plan.run_dir / "trajectory.txt"
+    metric = bool(summary.get("metric", True))
+    scale = None if metric else _num((summary.get("accuracy") or {}).get("sim3_scale"))
+    if not traj_path.is_file() or (not metric and scale is None):
+        return {}
+    try:
+        seq = io.load(config_from_dict(copy.deepcopy(plan.resolved)))
+        try:
+            gt = seq.groundtruth
+        finally:
+            close = getattr(seq, "close", None)
+            if close is not None:
+                close()
+        return {} if gt is None else kitti_errors(gt, read_tum(traj_path), scale)
+    except WindowVOError:
+        return {}
 
 
 def _read_json(path: Path) -> dict | None:
@@ -317,14 +343,14 @@ def record_outcome(plan: RunPlan, outcome: TaskOutcome) -> RunRow:
         row = RunRow(plan.run_id, plan.config_id, plan.sequence, plan.dataset.value, plan.grid_values,
                      TaskStatus.FAILED, "interrupted", wall_s=outcome.wall_s)
     elif outcome.ok and summary is not None:
-        row = row_from_summary(plan, summary, outcome.wall_s, reused=False)
+        row = row_from_summary(plan, summary, outcome.wall_s, reused=False, kitti=run_kitti(plan, summary))
     else:
         reason = outcome.reason or "no summary.json written"
         row = RunRow(plan.run_id, plan.config_id, plan.sequence, plan.dataset.value, plan.grid_values,
                      TaskStatus.FAILED, reason, wall_s=outcome.wall_s)
     marker = {"config_hash": plan.config_hash, "run_id": plan.run_id, "sequence": plan.sequence,
               "sequence_path": plan.resolved.get("sequence"), "grid": plan.grid_values, "status": row.status.value,
-              "reason": row.reason, "wall_s": outcome.wall_s, "finished_unix": time.time()}
+              "reason": row.reason, "wall_s": outcome.wall_s, "finished_unix": time.time(), "kitti": row.kitti}
     plan.run_dir.mkdir(parents=True, exist_ok=True)
     (plan.run_dir / RUN_MARKER).write_text(json.dumps(marker, indent=2, default=str))
     return row
@@ -361,7 +387,8 @@ def run_batch(spec_path: Path | str, executor: ExecutorKind = ExecutorKind.LOCAL
         done = None if force else finished_summary(plan)
         if done is not None:
             marker, summary = done
-            rows[plan.run_id] = row_from_summary(plan, summary, _num(marker.get("wall_s")), reused=True)
+            kitti = marker["kitti"] if isinstance(marker.get("kitti"), dict) else run_kitti(plan, summary)
+            rows[plan.run_id] = row_from_summary(plan, summary, _num(marker.get("wall_s")), reused=True, kitti=kitti)
         else:
             todo.append(plan)
     by_key = {p.run_id: p for p in todo}
@@ -398,7 +425,8 @@ def _progress(total: int, enabled: bool):
 
 # ---------------------------------------------------------------------------- reports
 
-CSV_METRICS = ("ate_se3_m", "ate_sim3_m", "ate_online_se3_m", "fps", "frames", "keyframes", "wall_s")
+CSV_METRICS = ("ate_se3_m", "ate_sim3_m", "ate_online_se3_m", *(c.key for c in KITTI_COLUMNS), "fps", "frames",
+               "keyframes", "wall_s")
 
 
 def _cell(v: Any) -> str:
@@ -435,7 +463,14 @@ class _Metric:
 
 
 METRICS = (_Metric("ate_se3_m", "ATE SE(3) m"), _Metric("ate_sim3_m", "ATE Sim(3) m"),
-           _Metric("ate_online_se3_m", "online ATE SE(3) m"), _Metric("fps", "fps", higher_is_better=True))
+           _Metric("ate_online_se3_m", "online ATE SE(3) m"),
+           *(_Metric(c.key, c.header) for c in KITTI_COLUMNS), _Metric("fps", "fps", higher_is_better=True))
+
+
+def report_metrics(rows: list[RunRow]) -> tuple[_Metric, ...]:
+    """The report's metrics: the KITTI devkit (100-800 m) ones only when some run has such a segment."""
+    shown = {c.key for c in shown_columns([r.kitti for r in rows])}
+    return tuple(m for m in METRICS if not m.attr.startswith("kitti_") or m.attr in shown)
 
 
 def _fmt(v: float | None, digits: int = 3) -> str:
@@ -444,6 +479,7 @@ def _fmt(v: float | None, digits: int = 3) -> str:
 
 def report_markdown(result: BatchResult, grid_keys: list[str], spec_path: Path) -> str:
     rows = result.rows
+    metrics = report_metrics(rows)
     configs = list(dict.fromkeys(r.config_id for r in rows))
     sequences = list(dict.fromkeys(r.sequence for r in rows))
     by_cfg = {c: [r for r in rows if r.config_id == c] for c in configs}
@@ -461,13 +497,13 @@ def report_markdown(result: BatchResult, grid_keys: list[str], spec_path: Path) 
         gv = by_cfg[c][0].grid_values
         lines.append(f"| {c} | " + " | ".join(_cell(gv.get(k)) for k in grid_keys) + (" |" if grid_keys else ""))
     lines += ["", "## Per config (mean and worst over the sequences that finished)", "",
-              "| config | ok / runs | " + " | ".join(f"{m.label} mean | {m.label} worst" for m in METRICS) + " |",
-              "|---|---|" + "---|---|" * len(METRICS)]
+              "| config | ok / runs | " + " | ".join(f"{m.label} mean | {m.label} worst" for m in metrics) + " |",
+              "|---|---|" + "---|---|" * len(metrics)]
     for c in configs:
         rs = by_cfg[c]
         ok = [r for r in rs if r.status is TaskStatus.OK]
         cells = []
-        for m in METRICS:
+        for m in metrics:
             pairs = [(getattr(r, m.attr), r.sequence) for r in ok if getattr(r, m.attr) is not None]
             if not pairs:
                 cells += ["", ""]
@@ -483,7 +519,7 @@ def report_markdown(result: BatchResult, grid_keys: list[str], spec_path: Path) 
     lines += ["", f"## Best config per metric (on the {len(common)} sequence(s) every config finished)", ""]
     if common:
         lines += ["| metric | best config | mean |", "|---|---|---|"]
-        for m in METRICS:
+        for m in metrics:
             means = {}
             for c in configs:
                 got = [getattr(r, m.attr) for r in by_cfg[c] if r.sequence in common and r.status is TaskStatus.OK]

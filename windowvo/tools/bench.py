@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import apply_overrides, config_from_dict
+from .kitti_columns import cell, kitti_errors, shown_columns
 
 SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"  # ../shared/data beside the repository
 
@@ -134,6 +135,14 @@ def _acc_row(acc) -> dict:
             "end_drift_pct": acc.end_drift_pct, "path_m": acc.path_length_m}
 
 
+def _method_row(acc, groundtruth, trajectory, metric: bool = True) -> dict:
+    """A method's accuracy row with its KITTI relative errors (``kitti``: both segment sets; an estimate up to
+    scale is scaled by its Sim(3) scale first)."""
+    if acc is None:
+        return {}
+    return {**_acc_row(acc), "kitti": kitti_errors(groundtruth, trajectory, None if metric else acc.sim3_scale)}
+
+
 def _median(ms: list[float]) -> float:
     return float(np.median(ms)) if ms else float("nan")
 
@@ -220,9 +229,11 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False,
     from ..runtime.job import run_job, wheel_only_trajectory
     data = case_config_data(case, cache, out_root, rerun, overrides)
     out = out_root / case.name
-    cfg = config_from_dict(data)
-    rep = run_job(cfg)
-    r = rep.result
+    rep = run_job(config_from_dict(data))
+    r, seq = rep.result, rep.sequence
+    gt = seq.groundtruth
+    if gt is None:
+        raise SequenceError(f"bench sequence {case.name!r} has no ground truth")
     row: dict = {
         "sequence": case.name,
         "kind": case.kind,
@@ -235,22 +246,18 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False,
         "backend_ms_p95": float(np.percentile(r.backend_ms, 95)) if r.backend_ms else float("nan"),
         "peak_rss_mb": _peak_rss_mb(),  # before the second run, so it is this run's
         "resets": r.n_resets,
-        "windowvo": _acc_row(rep.accuracy),
+        "windowvo": _method_row(rep.accuracy, gt, r.trajectory, r.metric),
         "windowvo_online": _acc_row(rep.online_accuracy),
         "scale": _scale_row(r),
     }
     row["no_ground_cue"], r_nc = _run_without_ground_cue(data, out)
     base_ms = row["no_ground_cue"]["backend_ms_median"]
     row["backend_cue_cost_pct"] = 100.0 * (row["backend_ms_median"] / base_ms - 1.0) if base_ms > 0 else float("nan")
-    seq = rep.sequence
-    gt = seq.groundtruth
-    if gt is None:
-        raise SequenceError(f"bench sequence {case.name!r} has no ground truth")
     wheel = wheel_only_trajectory(seq, r.trajectory.timestamps)
-    row["wheel"] = _acc_row(evaluate(gt, wheel)) if wheel is not None else {}
+    row["wheel"] = _method_row(evaluate(gt, wheel), gt, wheel) if wheel is not None else {}
     # The chaining baseline takes its scale from the wheels: none without them.
     chain = essential_chaining(seq) if seq.odometry is not None else None
-    row["chaining"] = _acc_row(evaluate(gt, chain.trajectory)) if chain is not None else {}
+    row["chaining"] = _method_row(evaluate(gt, chain.trajectory), gt, chain.trajectory) if chain is not None else {}
     row["chaining_fps"] = chain.fps if chain is not None else float("nan")
     row["chaining_failed_steps"] = chain.n_failed_steps if chain is not None else 0
     estimates = {"windowvo": r.trajectory}
@@ -300,36 +307,47 @@ def sequences_caption(rows: list[dict]) -> str:
             "windows. \"Without ground cue\": the same sequence run again with backend.ground.enabled=false "
             "and backend.wheel_calibration.enabled=false (before the metric-scale work); cue cost: back-end "
             "median with the cue / without - 1. ATE SE(3): the smoothed trajectory (trajectory.txt); online: "
-            "the causal one (trajectory_online.txt). Estimated scale error: the online wheel calibration at the end.")
+            "the causal one (trajectory_online.txt). Estimated scale error: the online wheel calibration at the end. "
+            "t_rel / r_rel: the KITTI odometry metric (mean translational error in % and rotational error in "
+            "deg/100 m) over segments of 10-80 m of the smoothed trajectory (100-800 m, the devkit's, when a path "
+            "is long enough; n/a: too short); a run up to scale is scaled by its Sim(3) scale first.")
+
+
+METHODS = {"windowvo": "windowvo", "wheel": "wheel odometry", "chaining": "E-matrix chaining"}
+
+
+def _windowvo_cells(r: dict) -> dict[str, str]:
+    """The cells only windowvo's line of a sequence has (speed, cue cost, online ATE, wheel calibration)."""
+    nc = r.get("no_ground_cue") or {}
+    calib: dict | None = (r.get("scale") or {}).get("wheel_calibration")
+    return {
+        "fps": _f(r["fps"], ".1f"),
+        "front-end ms/frame": _f(r["frontend_ms_mean"], ".2f"),
+        "back-end ms/kf (median / p95)": f"{_f(r['backend_ms_median'], '.1f')} / {_f(r['backend_ms_p95'], '.1f')}",
+        "back-end ms/kf median without ground cue (cue cost)":
+            f"{_f(nc.get('backend_ms_median'), '.1f')} ({_f(r.get('backend_cue_cost_pct'), '+.0f')}%)" if nc else "",
+        "peak RSS MB": _f(r["peak_rss_mb"], ".0f"),
+        "online (causal) ATE SE(3) m": _f((r.get("windowvo_online") or {}).get("ate_se3_m"), ".3f"),
+        "ATE SE(3) without ground cue m": _f((nc.get("windowvo") or {}).get("ate_se3_m"), ".3f"),
+        "wheel scale error: true / estimated":
+            "no wheels" if r["wheel_scale_error"] is None else
+            f"{100 * r['wheel_scale_error']:+.1f}% / " + (f"{100 * (calib['scale'] - 1.0):+.1f}%" if calib else "-"),
+    }
 
 
 def sequences_table(rows: list[dict]) -> str:
-    lines = ["| " + " | ".join(SEQUENCE_COLUMNS) + " |", "|" + "---|" * len(SEQUENCE_COLUMNS)]
-    names = {"windowvo": "windowvo", "wheel": "wheel odometry", "chaining": "E-matrix chaining"}
+    """The markdown table: a line per sequence and method, with the KITTI relative errors over 10-80 m (and
+    over the devkit's 100-800 m when some ground-truth path is long enough for one such segment)."""
+    kitti_cols = shown_columns([(r.get(m) or {}).get("kitti") for r in rows for m in METHODS])
+    columns = (*SEQUENCE_COLUMNS[:-1], *(c.header for c in kitti_cols), SEQUENCE_COLUMNS[-1])
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     for r in rows:
-        nc = r.get("no_ground_cue") or {}
-        for method in ("windowvo", "wheel", "chaining"):
+        for method, name in METHODS.items():
             a = r.get(method) or {}
-            cells = {c: "" for c in SEQUENCE_COLUMNS}
-            cells.update({"sequence": r["sequence"], "method": names[method], "frames": str(r["frames"])})
+            cells = {c: "" for c in columns}
+            cells.update({"sequence": r["sequence"], "method": name, "frames": str(r["frames"])})
             if method == "windowvo":
-                calib: dict | None = (r.get("scale") or {}).get("wheel_calibration")
-                cells.update({
-                    "fps": _f(r["fps"], ".1f"),
-                    "front-end ms/frame": _f(r["frontend_ms_mean"], ".2f"),
-                    "back-end ms/kf (median / p95)": f"{_f(r['backend_ms_median'], '.1f')} / "
-                                                     f"{_f(r['backend_ms_p95'], '.1f')}",
-                    "back-end ms/kf median without ground cue (cue cost)":
-                        f"{_f(nc.get('backend_ms_median'), '.1f')} ({_f(r.get('backend_cue_cost_pct'), '+.0f')}%)"
-                        if nc else "",
-                    "peak RSS MB": _f(r["peak_rss_mb"], ".0f"),
-                    "online (causal) ATE SE(3) m": _f((r.get("windowvo_online") or {}).get("ate_se3_m"), ".3f"),
-                    "ATE SE(3) without ground cue m": _f((nc.get("windowvo") or {}).get("ate_se3_m"), ".3f"),
-                    "wheel scale error: true / estimated":
-                        "no wheels" if r["wheel_scale_error"] is None else
-                        f"{100 * r['wheel_scale_error']:+.1f}% / "
-                        + (f"{100 * (calib['scale'] - 1.0):+.1f}%" if calib else "-"),
-                })
+                cells.update(_windowvo_cells(r))
             elif method == "chaining":
                 cells["fps"] = _f(r["chaining_fps"], ".1f")
             cells.update({
@@ -337,8 +355,9 @@ def sequences_table(rows: list[dict]) -> str:
                 "ATE Sim(3) m": _f(a.get("ate_sim3_m"), ".3f"),
                 "RPE m/m": _f(a.get("rpe_m_per_m"), ".3f"),
                 "end drift %": _f(a.get("end_drift_pct"), ".2f"),
+                **{c.header: cell(a.get("kitti"), c) for c in kitti_cols},
             })
-            lines.append("| " + " | ".join(cells[c] for c in SEQUENCE_COLUMNS) + " |")
+            lines.append("| " + " | ".join(cells[c] for c in columns) + " |")
     return "\n".join(lines)
 
 
