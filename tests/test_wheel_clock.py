@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -26,7 +28,7 @@ def _drive(offset_s: float, turning: bool = True, seed: int = 0, yaw_scale: floa
     wheels = WheelOdometry(t + offset_s, x, y, yaw_w)
     clock = WheelClock()
     kf = np.arange(1.0, duration_s - 1.0, 0.15)
-    for t0, t1 in zip(kf[:-1], kf[1:]):
+    for t0, t1 in itertools.pairwise(kf):
         clock.add(t0, t1, float(yaw_true(t1) - yaw_true(t0) + rng.normal(0, 5e-4)))
     return clock, wheels
 

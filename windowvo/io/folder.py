@@ -19,10 +19,10 @@ def load_folder(root: Path, cam_cfg: CameraConfig | None, fps: float) -> Sequenc
         raise SequenceError(f"image folder not found: {root}")
     folder = root / "images" if (root / "images").is_dir() else root
     images = list_images(folder)
-    cam = camera_from_config(cam_cfg, "folder")
+    warnings = [f"plain folder: timestamps from fps={fps}"]
+    cam = camera_from_config(cam_cfg, "folder", warnings)
     times = np.arange(len(images), dtype=float) / fps
-    return Sequence(root, images, times, cam, None, None, [f"plain folder: timestamps from fps={fps}"],
-                    name=root.name)
+    return Sequence(root, images, times, cam, None, None, warnings, name=root.name)
 
 
 def load(cfg: Config) -> Sequence:

@@ -34,7 +34,8 @@ def load_tum(root: Path, cam_cfg: CameraConfig | None) -> Sequence:
         raise SequenceError(f"rgb.txt lists {len(missing)} missing image(s), e.g. {missing[0].name}")
     if np.any(np.diff(times) <= 0):
         raise SequenceError("rgb.txt: timestamps are not strictly increasing")
-    cam = camera_from_config(cam_cfg, "tum")
+    warnings: list[str] = []
+    cam = camera_from_config(cam_cfg, "tum", warnings)
     gt = None
     if (root / "groundtruth.txt").is_file():
         g = np.asarray([[float(x) for x in r[:8]] for r in read_table(root / "groundtruth.txt", 8)])
@@ -43,7 +44,7 @@ def load_tum(root: Path, cam_cfg: CameraConfig | None) -> Sequence:
         if inside.sum() >= 2:
             T_w_b = np.einsum("nij,jk->nik", T_w_c_img[inside], inv_T(cam.T_base_cam))
             gt = anchor(times[inside], T_w_b)
-    return Sequence(root, images, times, cam, None, gt, [], name=root.name)
+    return Sequence(root, images, times, cam, None, gt, warnings, name=root.name)
 
 
 def load(cfg: Config) -> Sequence:

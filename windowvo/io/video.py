@@ -107,9 +107,11 @@ def load_video(path: Path, cam_cfg: CameraConfig | None, fps: float) -> Streamed
     path = Path(path)
     if not path.is_file():
         raise SequenceError(f"video file not found: {path}")
-    camera = camera_from_config(cam_cfg, "video")
+    warnings: list[str] = []
+    camera = camera_from_config(cam_cfg, "video", warnings)
     times, how = video_timestamps(path, fps)
-    warnings = [] if how == "container timestamps" else [f"video timestamps from the {how}"]
+    if how != "container timestamps":
+        warnings.append(f"video timestamps from the {how}")
     source = VideoFrameSource(path, len(times))
     first = source.read(0)
     if first.shape != (camera.height, camera.width):

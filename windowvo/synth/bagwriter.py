@@ -373,7 +373,7 @@ class _Parser(argparse.ArgumentParser):
 def main(argv=None) -> int:
     p = _Parser(prog="python -m windowvo.synth.bagwriter",
                 description="Write a native sequence folder (images/, times.txt, camera.yaml, odometry.csv, "
-                            "groundtruth.txt) as a ROS bag that `dataset: rosbag` reads.")
+                            "groundtruth.txt) as a ROS bag that dataset: rosbag reads.")
     p.add_argument("native", type=Path, help="native sequence folder")
     p.add_argument("out", type=Path, help="bag to write: a .bag file (ros1) or a new folder (ros2, mcap)")
     p.add_argument("--format", choices=[f.value for f in BagFormat], default=BagFormat.ROS2.value,
