@@ -284,6 +284,29 @@ class BackendConfig(_Section):
                                           "the window restarts after a failure")
 
 
+# Addresses ``viz.rerun: connect`` accepts: rerun[+http|+https]://HOST[:PORT]/proxy.
+CONNECT_SCHEMES = ("rerun", "rerun+http", "rerun+https")
+
+
+def connect_url_problem(url: str) -> str | None:
+    """What is wrong with a Rerun viewer address (None: nothing)."""
+    from urllib.parse import urlsplit
+
+    hint = "expected rerun+http://HOST:PORT/proxy (e.g. rerun+http://127.0.0.1:9876/proxy)"
+    try:
+        parts = urlsplit(url)
+        _ = parts.port
+    except ValueError as err:
+        return f"'{url}' is not a URL ({err}); {hint}"
+    if parts.scheme not in CONNECT_SCHEMES:
+        return f"'{url}': the scheme must be one of {', '.join(s + '://' for s in CONNECT_SCHEMES)}; {hint}"
+    if not parts.hostname:
+        return f"'{url}' has no host; {hint}"
+    if parts.path != "/proxy":
+        return f"'{url}': the path must be /proxy; {hint}"
+    return None
+
+
 class VizConfig(_Section):
     rerun: RerunMode = Field(RerunMode.SAVE, description="Rerun viewer: off, save (OUTPUT/recording.rrd), spawn (native"
                                                          " window), connect (to viz.connect_url), serve (web viewer)")
@@ -291,6 +314,14 @@ class VizConfig(_Section):
     image_every: int = Field(1, ge=1, description="log the camera image and its overlays every N frames")
     jpeg_quality: int = Field(75, ge=1, le=100, description="JPEG quality of the logged camera image (1-100); "
                                                             "compressed images keep the recording cost low")
+
+    @field_validator("connect_url")
+    @classmethod
+    def _connect_url(cls, v: str) -> str:
+        problem = connect_url_problem(v)
+        if problem is not None:
+            raise ValueError(problem)
+        return v
 
     @field_validator("rerun", mode="before")
     @classmethod

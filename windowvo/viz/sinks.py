@@ -25,9 +25,9 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
+from ..config import connect_url_problem
 from ..errors import ConfigError
 
-CONNECT_SCHEMES = ("rerun", "rerun+http", "rerun+https")
 CONNECT_PROBE_S = 3.0  # a viewer to connect to must accept a TCP connection within this
 SPAWN_WAIT_S = 15.0  # a spawned viewer must listen on its port within this (else killed)
 SPAWN_GRACE_S = 2.0  # ... and must still run this long after it listens (it opens its window then)
@@ -58,22 +58,15 @@ class ConnectTarget:
 
 
 def parse_connect_url(url: str) -> ConnectTarget:
-    """``viz.connect_url`` checked as rerun wants it: ``rerun[+http|+https]://HOST[:PORT]/proxy``."""
-    hint = "expected rerun+http://HOST:PORT/proxy (e.g. rerun+http://127.0.0.1:9876/proxy)"
-    try:
-        parts = urlsplit(url)
-        port = parts.port
-    except ValueError as err:
-        raise ConfigError(f"viz.connect_url '{url}' is not a URL ({err}); {hint}") from None
-    if parts.scheme not in CONNECT_SCHEMES:
-        raise ConfigError(f"viz.connect_url '{url}': the scheme must be one of "
-                          f"{', '.join(s + '://' for s in CONNECT_SCHEMES)}; {hint}")
-    if not parts.hostname:
-        raise ConfigError(f"viz.connect_url '{url}' has no host; {hint}")
-    if parts.path != "/proxy":
-        raise ConfigError(f"viz.connect_url '{url}': the path must be /proxy; {hint}")
+    """``viz.connect_url`` checked as rerun wants it (``config.connect_url_problem``), with its host and port."""
+    problem = connect_url_problem(url)
+    if problem is not None:
+        raise ConfigError(f"viz.connect_url {problem}")
+    parts = urlsplit(url)
+    port = parts.port
     if port is None:
         port = 443 if parts.scheme == "rerun+https" else SPAWN_PORT
+    assert parts.hostname is not None
     return ConnectTarget(url, parts.hostname, port)
 
 
