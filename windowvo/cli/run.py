@@ -102,7 +102,8 @@ def _main(argv: list[str] | None) -> int:
             if args.resume:
                 from ..runtime.resume import resume
 
-                result = resume(cfg)
+                resume(cfg)
+                return 0
             else:
                 prepare_output(cfg.output, force=args.force, replace=config_arg is None)
                 from ..runtime.job import run_and_report  # the pipeline (GTSAM, OpenCV) is loaded only now

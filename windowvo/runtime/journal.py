@@ -142,6 +142,8 @@ def resumed_trajectory(j: JournalContents) -> Trajectory:
         pos = int(np.searchsorted(rows, i, side="right")) - 1
         if pos < 0:
             poses.append(kfs[0][2])
+        elif kfs[pos][0] == i:
+            poses.append(kfs[pos][2])
         elif pos == len(kfs) - 1:
             row, _, T_kf = kfs[pos]
             poses.append(T_kf @ inv_T(j.online[row]) @ j.online[i])

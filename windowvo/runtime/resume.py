@@ -20,6 +20,7 @@ from ..backend.report import ScaleReport
 from ..config import Config
 from ..errors import WindowVOError
 from ..io.trajectory import Trajectory
+from ..types import ScaleSource
 from .job import JobReport, evaluate_report, load_sequence
 from .journal import JOURNAL_NAME, JournalContents, last_final_frame, read_journal, resumed_trajectory
 from .outfolder import OutputLock
@@ -30,10 +31,11 @@ log = logging.getLogger("windowvo")
 
 
 def resumed_result(j: JournalContents) -> RunResult:
-    """A :class:`RunResult` of the journaled frames (what the scale report knew is lost with the process: only
-    whether the run was metric, from the cues it used)."""
+    """A :class:`RunResult` of the journaled frames. What the back end knew about the scale (the wheel calibration,
+    when the floor fixed it) died with the process: the scale sources are the cues the run was set up to use."""
     recs = j.records
-    metric = bool(j.header.get("use_odometry") or j.header.get("use_ground"))
+    sources = [s.value for s, used in ((ScaleSource.WHEELS, j.header.get("use_odometry")),
+                                       (ScaleSource.GROUND_PLANE, j.header.get("use_ground"))) if used]
     return RunResult(
         n_frames=len(recs),
         n_keyframes=sum(1 for r in recs if r.is_keyframe and r.backend_status),
@@ -42,7 +44,7 @@ def resumed_result(j: JournalContents) -> RunResult:
         trajectory=resumed_trajectory(j),
         records=recs,
         monocular=not j.header.get("use_odometry", False),
-        scale=ScaleReport.lost(metric),
+        scale=ScaleReport(metric=bool(sources), scale_sources=sources),
         interrupted=True,
         frontend_ms=[r.frontend_ms for r in recs if r.frontend_ms > 0],
         backend_ms=[r.backend_ms for r in recs if r.is_keyframe],
