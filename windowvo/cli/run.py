@@ -69,6 +69,11 @@ def main(argv: list[str] | None = None) -> int:
         return _interrupted(intr.signum)
     except KeyboardInterrupt:  # a signal that came before the handlers (the interpreter starting)
         return _interrupted(signal.SIGINT)
+    finally:
+        if "windowvo.runtime.parallel" in sys.modules:  # a pipelined run: leave no helper process behind
+            from ..runtime.parallel import stop_resource_tracker
+
+            stop_resource_tracker()
 
 
 def _interrupted(signum: int) -> int:

@@ -10,7 +10,8 @@ process killed at any moment loses at most the frames since the last keyframe th
 - ``{"keyframe": i, "t": t, "T_world_base": [16]}``: a keyframe's smoothed pose once it is final (it left the
   fixed-lag window: marginalised, never changed again). A monocular run made metric late rescales every keyframe
   before the window: they are journaled again, and the last line of a keyframe is its pose;
-- ``{"end": "complete" | "interrupted"}``: the run ended and wrote its outputs.
+- ``{"end": "complete" | "interrupted" | "resumed"}``: the run ended and its outputs were written (by ``--resume``
+  after a kill).
 
 :func:`read_journal` reads a (possibly cut) journal back and :func:`resumed_trajectory` rebuilds the smoothed
 trajectory from it (``python -m windowvo.run CONFIG --resume``).
@@ -69,6 +70,12 @@ class RunJournal:
             self._pending.append(json.dumps({"end": end}))
         self.flush()
         self._fh.close()
+
+
+def mark_end(path: Path, end: str) -> None:
+    """Append an end line to a journal whose run could not (``--resume`` wrote its outputs)."""
+    with Path(path).open("a") as fh:
+        fh.write(json.dumps({"end": end}) + "\n")
 
 
 def _flat(T: np.ndarray) -> list[float]:

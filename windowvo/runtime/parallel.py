@@ -12,6 +12,7 @@ the inputs of the sequential mode, in the same order, so the trajectories are th
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import logging
 import multiprocessing as mp
@@ -179,3 +180,17 @@ class BackendWorker:
         self._inbox.cancel_join_thread()
         self._inbox.close()
         self._outbox.close()
+
+
+def stop_resource_tracker() -> None:
+    """Stop multiprocessing's resource tracker (a helper process started with the worker) and wait for it: left
+    alone it outlives the main process by a moment, a process left behind in the run's group. Call it at the very
+    end, once no worker is in use (the queues' semaphores are collected first, so nothing starts it again)."""
+    import gc
+    from multiprocessing import resource_tracker
+
+    gc.collect()
+    stop_tracker = getattr(getattr(resource_tracker, "_resource_tracker", None), "_stop", None)
+    if callable(stop_tracker):
+        with contextlib.suppress(Exception):
+            stop_tracker()

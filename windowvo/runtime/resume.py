@@ -22,7 +22,7 @@ from ..errors import WindowVOError
 from ..io.trajectory import Trajectory
 from ..types import ScaleSource
 from .job import JobReport, evaluate_report, load_sequence
-from .journal import JOURNAL_NAME, JournalContents, last_final_frame, read_journal, resumed_trajectory
+from .journal import JOURNAL_NAME, JournalContents, last_final_frame, mark_end, read_journal, resumed_trajectory
 from .outfolder import OutputLock
 from .outputs import summary_dict, summary_lines, write_outputs, write_summary
 from .pipeline import RunResult
@@ -72,6 +72,7 @@ def resume(cfg: Config) -> RunResult:
         summary.update(resumed=True, final_keyframes=len(j.final_keyframes),
                        smoothed_through_frame=None if last is None else j.records[last].frame_index)
         write_summary(summary, out)
+        mark_end(out / JOURNAL_NAME, "resumed")
         log.info("resumed from %s: %d frames finished, %d keyframes with final smoothed poses", JOURNAL_NAME,
                  result.n_frames, len(j.final_keyframes))
         print("\n".join(summary_lines(report, summary, out)))
