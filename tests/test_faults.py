@@ -90,7 +90,7 @@ def reference(seq, tmp_path_factory):
     cfg = config(d / "c.yaml", seq, d / "out")
     proc = subprocess.Popen([sys.executable, "-m", "windowvo.run", str(cfg), "--no-progress", "-q"], env=ENV,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    out, err = proc.communicate(timeout=TIMEOUT)
+    _, err = proc.communicate(timeout=TIMEOUT)
     left = [p.name for p in Path("/proc").iterdir() if p.name.isdigit() and _pgrp(p) == proc.pid]
     assert proc.returncode == 0, err
     return cfg, d / "out", left
