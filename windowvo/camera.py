@@ -52,10 +52,11 @@ class CameraModel:
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise CalibrationError("camera: T_base_cam must be 16 finite numbers (a 4x4 matrix, row major)")
         R = T[:3, :3]
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0.99 or not np.allclose(
-            T[3], [0, 0, 0, 1], atol=1e-9
-        ):
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or not np.allclose(T[3], [0, 0, 0, 1], atol=1e-9):
             raise CalibrationError("camera: T_base_cam is not a rigid transform (rotation not orthonormal)")
+        if np.linalg.det(R) < 0:
+            raise CalibrationError("camera: T_base_cam is a reflection (rotation determinant -1), not a rigid transform: "
+                                   "one axis is flipped (a left-handed frame)")
         object.__setattr__(self, "T_base_cam", T)
 
     # ------------------------------------------------------------------ matrices

@@ -2,7 +2,10 @@
 
 import sys
 
-from .cli.run import main
+from .runtime import stop
+
+stop.install()  # first: a Ctrl-C while the rest is imported is then handled (one line, exit 130)
+from .cli.run import main  # noqa: E402
 
 if __name__ == "__main__":
     sys.exit(main())

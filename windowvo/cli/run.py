@@ -8,14 +8,15 @@ outputs to ./windowvo_output/default.
 
 from __future__ import annotations
 
+# Light on purpose: the stop handlers are installed before OpenCV, GTSAM or pydantic are imported, so Ctrl-C and
+# SIGTERM end the run with one line and exit 130/143 from its first line on (runtime/stop.py).
 import argparse
 import logging
+import signal
 import sys
 from pathlib import Path
 
-from ..config import ConfigError, load_config
-from ..errors import WindowVOError, cli_error
-from ..runtime.default_job import DEFAULT_ROOT, check_output_folder, default_config
+from ..runtime import stop
 
 log = logging.getLogger("windowvo")
 
@@ -30,7 +31,11 @@ A config needs only `sequence:` (a native sequence folder) and `output:`; relati
 paths are resolved against the config file. Every other key has a default; see the README's
 config reference. Outputs: trajectory.txt (TUM, one line per frame), stats.csv,
 config_resolved.yaml, summary.json and recording.rrd (when viz.rerun=save).
-Exit codes: 0 done, 2 bad input or configuration, 130 interrupted (results still written).
+Each run holds OUT/.windowvo.lock; a folder holding an earlier run's files is refused
+unless --force (they are moved to OUT/previous-<time>/); the embedded default replaces its
+own previous run. --resume turns a killed run's folder into its outputs (journal.jsonl).
+Exit codes: 0 done, 2 bad input or configuration, 130 interrupted by SIGINT, 143 by SIGTERM
+(results so far still written).
 """
 
 
@@ -47,14 +52,47 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.add_argument("-q", "--quiet", action="store_true", help="only warnings and the summary")
+    how = p.add_mutually_exclusive_group()
+    how.add_argument("--force", action="store_true",
+                     help="run even if the output folder holds an earlier run's files (moved to OUT/previous-<time>/)")
+    how.add_argument("--resume", action="store_true",
+                     help="write the outputs of a killed run in the output folder from its journal (no frame is "
+                          "processed again)")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
+    stop.install()
+    try:
+        return _main(argv)
+    except stop.Interrupted as intr:
+        return _interrupted(intr.signum)
+    except KeyboardInterrupt:  # a signal that came before the handlers (the interpreter starting)
+        return _interrupted(signal.SIGINT)
+    finally:
+        if "windowvo.runtime.parallel" in sys.modules:  # a pipelined run: leave no helper process behind
+            from ..runtime.parallel import stop_resource_tracker
+
+            stop_resource_tracker()
+
+
+def _interrupted(signum: int) -> int:
+    name = signal.Signals(signum).name
+    print(f"windowvo: interrupted by {name} before the first frame was processed: nothing written", file=sys.stderr)
+    return stop.exit_code(signum)
+
+
+def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
     level = logging.DEBUG if args.verbose else (logging.WARNING if args.quiet else logging.INFO)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("matplotlib").setLevel(logging.WARNING)
+    from ..config import ConfigError, load_config
+    from ..errors import WindowVOError, cli_error
+    from ..runtime.default_job import DEFAULT_ROOT, check_output_folder, default_config, prepare_output
+    from ..runtime.outfolder import OutputLock
+
+    stop.set_phase(stop.Phase.RAISE)  # a signal during the imports above unwinds here
     config_arg = args.config
     overrides = list(args.overrides)
     if config_arg is not None and "=" in config_arg and not Path(config_arg).exists():
@@ -65,11 +103,22 @@ def main(argv: list[str] | None = None) -> int:
         if args.no_progress:
             cfg.progress = False
         check_output_folder(cfg.output)
-        from ..runtime.job import run_and_report  # the pipeline (GTSAM, OpenCV) is loaded only now
+        with OutputLock.of(cfg.output):
+            if args.resume:
+                from ..runtime.resume import resume
 
-        result = run_and_report(cfg)
+                resume(cfg)
+                return 0
+            else:
+                prepare_output(cfg.output, force=args.force, replace=config_arg is None)
+                from ..runtime.job import run_and_report  # the pipeline (GTSAM, OpenCV) is loaded only now
+
+                result = run_and_report(cfg)
     except (ConfigError, WindowVOError) as err:
         return cli_error(err)
+    signum = stop.requested()
+    if signum is not None:
+        return stop.exit_code(signum)
     return 130 if result.interrupted else 0
 
 

@@ -6,13 +6,22 @@ File ``odometry.csv`` with header ``timestamp,x,y,yaw``. Lines starting with ``#
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import SequenceError
 from ..geometry import inv_T, planar_T
+
+log = logging.getLogger(__name__)
+
+# Faster than any ground vehicle: a wheel sample that moves the base faster than this since the previous one (plus
+# TELEPORT_SLACK_M for timestamp jitter) is a teleport (an odometry reset, a corrupt message), not motion. Proposed
+# config key: backend.odometry.max_speed_m_s.
+MAX_WHEEL_SPEED_M_S = 60.0
+TELEPORT_SLACK_M = 0.5
 
 
 @dataclass
@@ -25,6 +34,8 @@ class WheelOdometry:
     # A streamed odometry may be asked for a time just past its newest sample (the frame came first):
     # poses up to this many seconds past the end are extrapolated at the last velocity.
     extrapolate_s: float = 0.0
+    # Times of samples rejected as teleports (WheelBuffer): a step across one has no usable wheel data.
+    rejected_times: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def synthetic(self) -> bool:
@@ -63,8 +74,11 @@ class WheelOdometry:
         return float(np.hypot(np.diff(px), np.diff(py)).sum())
 
     def max_gap_in(self, t0: float, t1: float) -> float:
-        """Largest time between consecutive samples that bracket [t0, t1]."""
+        """Largest time between consecutive samples that bracket [t0, t1]; infinite when a sample between them was
+        rejected as a teleport (the step then has no trustworthy wheel data)."""
         ts = self.timestamps
+        if len(self.rejected_times) and np.any((self.rejected_times > t0) & (self.rejected_times <= t1)):
+            return float("inf")
         i0 = max(int(np.searchsorted(ts, t0, side="right")) - 1, 0)
         i1 = min(int(np.searchsorted(ts, t1, side="left")), len(ts) - 1)
         if i1 <= i0:
@@ -82,6 +96,10 @@ class WheelBuffer:
         self._a = np.zeros((4, 1024))  # rows: t, x, y, yaw (unwrapped)
         self._n = 0
         self._view: WheelOdometry | None = None
+        self.max_speed_m_s = MAX_WHEEL_SPEED_M_S
+        self._raw_last: tuple[float, float, float] | None = None  # the previous sample as it came (x, y, yaw)
+        self._T_fix: np.ndarray | None = None  # corrects the samples after a rejected teleport: T_odom_odomraw
+        self.rejected: list[float] = []  # times of the samples rejected as teleports
 
     def __len__(self) -> int:
         return self._n
@@ -95,6 +113,7 @@ class WheelBuffer:
             raise SequenceError(f"wheel odometry sample at t={t} is not finite")
         if self._n and t <= self.last_time:
             raise SequenceError(f"wheel odometry timestamps must increase: {t} after {self.last_time}")
+        x, y, yaw = self._untangle(t, x, y, yaw)
         if self._n:  # unwrap the yaw against the previous sample
             prev = float(self._a[3, self._n - 1])
             yaw = prev + float(np.angle(np.exp(1j * (yaw - prev))))
@@ -104,12 +123,33 @@ class WheelBuffer:
         self._n += 1
         self._view = None
 
+    def _untangle(self, t: float, x: float, y: float, yaw: float) -> tuple[float, float, float]:
+        """The sample in the buffer's odometry frame. A jump no vehicle can drive since the previous sample is
+        rejected (warning; the base is held where it was, and the samples after it continue from there)."""
+        raw = (x, y, yaw)
+        last, self._raw_last = self._raw_last, raw
+        if last is not None and self._n:
+            dt = t - self.last_time
+            jump = float(np.hypot(x - last[0], y - last[1]))
+            if jump > self.max_speed_m_s * dt + TELEPORT_SLACK_M:
+                prev = self._a[1:, self._n - 1]
+                self._T_fix = planar_T(float(prev[0]), float(prev[1]), float(prev[2])) @ inv_T(planar_T(x, y, yaw))
+                self.rejected.append(float(t))
+                log.warning("wheel odometry jumps %.1f m in %.3f s at t=%.3f s (%.0f m/s, faster than any vehicle: "
+                            "above %.0f m/s): sample rejected, vision only for that step", jump, dt, t,
+                            jump / max(dt, 1e-9), self.max_speed_m_s)
+        if self._T_fix is None:
+            return x, y, yaw
+        T = self._T_fix @ planar_T(x, y, yaw)
+        return float(T[0, 3]), float(T[1, 3]), float(np.arctan2(T[1, 0], T[0, 0]))
+
     def view(self) -> WheelOdometry | None:
         if self._n < 2:
             return None
         if self._view is None:
             a = self._a[:, : self._n]
-            self._view = WheelOdometry(a[0], a[1], a[2], a[3], self.comment, self.extrapolate_s)
+            self._view = WheelOdometry(a[0], a[1], a[2], a[3], self.comment, self.extrapolate_s,
+                                       np.asarray(self.rejected, float))
         return self._view
 
 

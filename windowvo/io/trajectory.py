@@ -266,6 +266,7 @@ class TumJournal:
         self.path = path
         self._fh = path.open("w")
         self._fh.write("".join(f"# {h}\n" for h in header.splitlines()))
+        self._fh.flush()  # the header is on disk from the start: a killed run's journal is never a 0-byte file
         self._pending: list[str] = []
 
     def add(self, t: float, T: np.ndarray) -> None:

@@ -9,6 +9,8 @@ import os
 from pathlib import Path
 
 from ..config import Config, ConfigError, apply_overrides, config_from_dict
+from ..errors import WindowVOError
+from .outfolder import check_writable_names, move_aside, previous_run_files, remove_previous
 
 log = logging.getLogger("windowvo")
 
@@ -48,3 +50,23 @@ def check_output_folder(out: Path) -> None:
             break
     if out.is_dir() and not os.access(out, os.W_OK | os.X_OK):
         raise ConfigError(f"output folder '{out}' is not writable")
+
+
+def prepare_output(out: Path, force: bool, replace: bool) -> None:
+    """Never mix two runs' files in one folder: an earlier run's files are deleted (``replace``: the embedded
+    default job replaces its own previous run), moved into ``out/previous-<time>/`` (``force``), or the run is
+    refused with one line. Call it holding the folder's lock."""
+    files = previous_run_files(out)
+    if not files:
+        return
+    if not force:
+        check_writable_names(out)
+    if replace:
+        remove_previous(out)
+        log.info("replacing the previous default run in %s", out)
+    elif force:
+        log.info("--force: the earlier run's files moved to %s", move_aside(out))
+    else:
+        names = ", ".join(f.name for f in files)
+        raise WindowVOError(f"output folder '{out}' holds an earlier run's files ({names}): use --force to move them "
+                            f"into {out}/previous-<time>/, --resume to finish a killed run, or another output")

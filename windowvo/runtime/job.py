@@ -18,6 +18,8 @@ from ..errors import WindowVOError
 from ..eval.metrics import AccuracyReport
 from ..io.sequence import Sequence
 from ..io.trajectory import Trajectory
+from . import stop
+from .outfolder import OutputLock, check_writable_names
 from .outputs import summary_dict, summary_lines, write_outputs, write_summary
 from .parallel import BackendWorker
 from .pipeline import Pipeline, RunResult
@@ -58,21 +60,26 @@ def make_viewer(cfg: Config, seq: Sequence):
 
 
 def run_job(cfg: Config, progress=None) -> JobReport:
-    # Pipelined: spawn the back-end process first, so its start overlaps with loading the sequence.
-    worker = BackendWorker() if cfg.run_mode is RunMode.PIPELINED else None
-    try:
-        return _run_job(cfg, progress, worker)
-    finally:
-        if worker is not None:
-            worker.close()
+    """Run a job into ``cfg.output`` (holding its lock, :class:`~windowvo.runtime.outfolder.OutputLock`). A stop
+    signal while loading raises :class:`~windowvo.runtime.stop.Interrupted`; from the first frame on, it ends the
+    run early and every output is still written (``result.interrupted``)."""
+    with stop.guarded(stop.Phase.RAISE), OutputLock.of(cfg.output):
+        check_writable_names(cfg.output)
+        # A summary.json that is not this run's must never sit beside this run's files (a failed run included).
+        (cfg.output / "summary.json").unlink(missing_ok=True)
+        # Pipelined: spawn the back-end process first, so its start overlaps with loading the sequence.
+        worker = BackendWorker() if cfg.run_mode is RunMode.PIPELINED else None
+        try:
+            report = _run_job(cfg, progress, worker)
+        finally:
+            if worker is not None:
+                worker.close()
+        if stop.requested() is not None:  # a signal after the last frame: the run is still marked interrupted
+            report.result.interrupted = True
+        return report
 
 
-def _run_job(cfg: Config, progress, worker: BackendWorker | None) -> JobReport:
-    seq = load_sequence(cfg)
-    for w in seq.warnings:
-        log.warning("%s", w)
-    viewer = make_viewer(cfg, seq)
-    pipe = Pipeline(cfg, seq, viewer=viewer, progress=progress, worker=worker)
+def _log_plan(pipe: Pipeline, seq: Sequence) -> None:
     plan = pipe.vo.plan
     ground = (f"the floor at the camera height ({plan.camera_height_m:.3f} m above it)" if plan.use_ground
               else "no ground cue")
@@ -84,6 +91,15 @@ def _run_job(cfg: Config, progress, worker: BackendWorker | None) -> JobReport:
         log.info("no wheel odometry: monocular run made metric by %s", ground)
     else:
         log.warning("no wheel odometry and no ground cue: monocular run, the trajectory is up to scale")
+
+
+def _run_job(cfg: Config, progress, worker: BackendWorker | None) -> JobReport:
+    seq = load_sequence(cfg)
+    for w in seq.warnings:
+        log.warning("%s", w)
+    viewer = make_viewer(cfg, seq)
+    pipe = Pipeline(cfg, seq, viewer=viewer, progress=progress, worker=worker)
+    _log_plan(pipe, seq)
     result = None
     try:
         result = pipe.run()
@@ -95,29 +111,37 @@ def _run_job(cfg: Config, progress, worker: BackendWorker | None) -> JobReport:
                           pipe.frames[-1][0] if pipe.frames else -1, cfg.output)
             except Exception:  # pragma: no cover - best effort only
                 pass
+            pipe.end_journal(None)
     write_outputs(cfg, result, cfg.output)
+    pipe.end_journal("interrupted" if result.interrupted else "complete")
     if result.n_keyframes == 0 and not result.interrupted:
         if viewer is not None:
             viewer.finish(result, None)
         raise WindowVOError(
             f"no keyframe in {result.n_frames} frames: no trackable features (images black, uniform or fully "
             f"masked?); stats.csv in {cfg.output} says what each frame had")
-    report = JobReport(result, seq)
-    if seq.groundtruth is not None and len(result.trajectory) >= 3:
-        from ..eval.metrics import evaluate
-
-        try:
-            report.accuracy = evaluate(seq.groundtruth, result.trajectory, monocular=not result.metric)
-            if result.trajectory_online is not None and len(result.trajectory_online) >= 3:
-                report.online_accuracy = evaluate(seq.groundtruth, result.trajectory_online,
-                                                  monocular=not result.metric)
-            wheel = wheel_only_trajectory(seq, result.trajectory.timestamps)
-            if wheel is not None:
-                report.wheel_accuracy = evaluate(seq.groundtruth, wheel)
-        except WindowVOError as err:
-            log.warning("evaluation skipped: %s", err)
+    report = evaluate_report(JobReport(result, seq))
     if viewer is not None:
         viewer.finish(result, report)
+    return report
+
+
+def evaluate_report(report: JobReport) -> JobReport:
+    """The accuracies of the report's trajectories against the sequence's ground truth (when it has one)."""
+    seq, result = report.sequence, report.result
+    if seq.groundtruth is None or len(result.trajectory) < 3:
+        return report
+    from ..eval.metrics import evaluate
+
+    try:
+        report.accuracy = evaluate(seq.groundtruth, result.trajectory, monocular=not result.metric)
+        if result.trajectory_online is not None and len(result.trajectory_online) >= 3:
+            report.online_accuracy = evaluate(seq.groundtruth, result.trajectory_online, monocular=not result.metric)
+        wheel = wheel_only_trajectory(seq, result.trajectory.timestamps)
+        if wheel is not None:
+            report.wheel_accuracy = evaluate(seq.groundtruth, wheel)
+    except WindowVOError as err:
+        log.warning("evaluation skipped: %s", err)
     return report
 
 
@@ -143,12 +167,16 @@ def run_and_report(cfg: Config) -> RunResult:
         seq_len_hint = len(list((cfg.sequence / "images").iterdir())) if (cfg.sequence / "images").is_dir() else None
     total = min(seq_len_hint or 0, cfg.max_frames or 10**9) or None
     bar, update = _progress_bar(cfg, total or 0)
-    try:
-        report = run_job(cfg, progress=update)
-    finally:
-        if bar is not None:
-            bar.close()
-    summary = summary_dict(report, cfg)
-    write_summary(summary, cfg.output)
-    print("\n".join(summary_lines(report, summary, cfg.output)))
-    return report.result
+    with stop.guarded(stop.Phase.RAISE):
+        try:
+            report = run_job(cfg, progress=update)
+        finally:
+            if bar is not None:
+                bar.close()
+        stop.set_phase(stop.Phase.DEFER)  # from here on a signal only marks the run interrupted
+        if stop.requested() is not None:
+            report.result.interrupted = True
+        summary = summary_dict(report, cfg)
+        write_summary(summary, cfg.output)
+        print("\n".join(summary_lines(report, summary, cfg.output)))
+        return report.result

@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import json
 import logging
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -37,7 +38,9 @@ def write_outputs(cfg: Config, result: RunResult, out: Path) -> None:
         write_tum(out / "trajectory_online.txt", result.trajectory_online.timestamps,
                   result.trajectory_online.T_world_base, header=ONLINE_HEADER + ": " + header)
     write_stats(out / "stats.csv", result.records)
-    save_config(cfg, out / "config_resolved.yaml")
+    tmp = out / "config_resolved.yaml.tmp"
+    save_config(cfg, tmp)
+    os.replace(tmp, out / "config_resolved.yaml")
 
 
 def write_stats(path: Path, records: list[FrameRecord]) -> None:
@@ -101,7 +104,10 @@ def summary_dict(report: JobReport, cfg: Config) -> dict:
 
 
 def write_summary(summary: dict, out: Path) -> None:
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    """``summary.json``, atomically (temporary file, then rename): a stop while writing never leaves half of it."""
+    tmp = out / "summary.json.tmp"
+    tmp.write_text(json.dumps(summary, indent=2))
+    os.replace(tmp, out / "summary.json")
 
 
 def _scale_line(r: RunResult, summary: dict) -> str:

@@ -12,6 +12,7 @@ the inputs of the sequential mode, in the same order, so the trajectories are th
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import logging
 import multiprocessing as mp
@@ -19,6 +20,7 @@ import os
 import queue
 import signal
 from collections import deque
+from collections.abc import Callable
 
 from ..backend.report import ScaleReport
 from ..camera import CameraModel
@@ -34,6 +36,7 @@ MAX_IN_FLIGHT = 16
 # How often (s) a blocked wait checks that the worker is still alive.
 POLL_S = 1.0
 _NOTHING = object()  # no message within POLL_S
+STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
 
 
 class Reply(str, enum.Enum):
@@ -48,9 +51,11 @@ def _serve(inbox, outbox, parent_pid: int) -> None:
     """Worker loop: the first message sets up one back end (camera, config, wheels), then keyframes until
     ``None`` arrives; then its final report. It also ends when the main process is gone (killed with
     SIGKILL, say), checked before every message, so no orphan is left behind."""
-    # Ctrl-C and SIGTERM go to the whole process group: the main process decides when to stop.
+    # Ctrl-C and SIGTERM go to the whole process group: the main process decides when to stop. They were blocked
+    # from before this process started (BackendWorker), so none came through while Python was starting.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     from ..backend.smoother import SlidingWindowBackend
 
@@ -92,7 +97,12 @@ class BackendWorker:
         self._outbox = ctx.Queue()
         self._proc = ctx.Process(target=_serve, args=(self._inbox, self._outbox, os.getpid()),
                                  name="windowvo-backend", daemon=True)
-        self._proc.start()
+        # The child inherits the signal mask: a Ctrl-C to the process group while it imports is held, then ignored.
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+        try:
+            self._proc.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         self.in_flight = 0
         self.report: ScaleReport | None = None
         self._ready: deque[BackendOutput] = deque()
@@ -104,12 +114,14 @@ class BackendWorker:
         self._inbox.put((fo, odom))
         self.in_flight += 1
 
-    def _receive(self, block: bool) -> tuple[Reply, object] | None:
+    def _receive(self, block: bool, give_up: Callable[[], bool] | None = None) -> tuple[Reply, object] | None:
+        """The worker's next message; None if there is none and not ``block``, or ``give_up()`` says stop waiting
+        (checked every POLL_S)."""
         while True:
             try:
                 return self._outbox.get(block=block, timeout=POLL_S if block else None)
             except queue.Empty:
-                if not block:
+                if not block or (give_up is not None and give_up()):
                     return None
                 if not self._proc.is_alive():
                     raise WindowVOError(
@@ -117,10 +129,10 @@ class BackendWorker:
                         "with run_mode=pipelined needs Python's `if __name__ == '__main__':` guard, or use "
                         "run_mode=sequential") from None
 
-    def result(self, block: bool) -> BackendOutput | None:
-        """The next keyframe's output, or None if it is not ready and ``block`` is False."""
+    def result(self, block: bool, give_up: Callable[[], bool] | None = None) -> BackendOutput | None:
+        """The next keyframe's output, or None if it is not ready and ``block`` is False (or ``give_up()``)."""
         if not self._ready:
-            msg = self._receive(block)
+            msg = self._receive(block, give_up)
             if msg is None:
                 return None
             kind, payload = msg
@@ -131,12 +143,14 @@ class BackendWorker:
         self.in_flight -= 1
         return self._ready.popleft()
 
-    def finish(self) -> ScaleReport | None:
-        """Wait for the worker to end; returns its scale report (None: it never had a keyframe)."""
+    def finish(self, give_up: Callable[[], bool] | None = None) -> ScaleReport | None:
+        """Wait for the worker to end; returns its scale report (None: it never had a keyframe, or ``give_up()``
+        said stop waiting)."""
         self._inbox.put(None)
         while True:
-            msg = self._receive(block=True)
-            assert msg is not None
+            msg = self._receive(block=True, give_up=give_up)
+            if msg is None:
+                return None
             kind, payload = msg
             if kind is Reply.DONE:
                 assert payload is None or isinstance(payload, ScaleReport)
@@ -166,3 +180,17 @@ class BackendWorker:
         self._inbox.cancel_join_thread()
         self._inbox.close()
         self._outbox.close()
+
+
+def stop_resource_tracker() -> None:
+    """Stop multiprocessing's resource tracker (a helper process started with the worker) and wait for it: left
+    alone it outlives the main process by a moment, a process left behind in the run's group. Call it at the very
+    end, once no worker is in use (the queues' semaphores are collected first, so nothing starts it again)."""
+    import gc
+    from multiprocessing import resource_tracker
+
+    gc.collect()
+    stop_tracker = getattr(getattr(resource_tracker, "_resource_tracker", None), "_stop", None)
+    if callable(stop_tracker):
+        with contextlib.suppress(Exception):
+            stop_tracker()

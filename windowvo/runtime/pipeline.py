@@ -3,16 +3,16 @@
 Runs deterministically in one thread, through the same :class:`~windowvo.stream.Odometry` object a
 robot would call in its loop (wheel samples fed up to each frame's time, then the frame). Whatever
 happens (a failing frame, Ctrl-C, SIGTERM), the trajectory of every frame processed so far,
-``stats.csv`` and the recording are written; on a hard kill (SIGKILL, out of memory) the causal
-trajectory ``trajectory_online.txt``, appended and flushed at every keyframe, still holds every
-frame up to the last keyframe.
+``stats.csv`` and the recording are written; on a hard kill (SIGKILL, out of memory) the journal
+``journal.jsonl`` (every finished frame's stats row and causal pose, every keyframe's smoothed pose once final)
+and the causal trajectory ``trajectory_online.txt``, both appended and flushed at every keyframe, still hold
+every frame up to the last finished keyframe (``runtime/journal.py``; ``--resume`` rebuilds the outputs).
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import signal
+import os
 import time
 from collections import deque
 from collections.abc import Callable
@@ -29,6 +29,8 @@ from ..io.provider import DataProvider, SkippedFrame
 from ..io.sequence import Sequence
 from ..io.trajectory import Trajectory, TumJournal
 from ..types import BackendOutput, Frame, FrameEstimate, FrameRecord, FrontendOutput, WheelCalibration
+from . import stop
+from .journal import JOURNAL_NAME, RunJournal
 from .parallel import MAX_IN_FLIGHT, BackendWorker
 from .stream import Odometry, TrackedFrame
 
@@ -132,8 +134,15 @@ class Pipeline:
             self.worker = worker if worker is not None else BackendWorker()
             self.worker.start(cam, cfg.backend, self.use_odometry)
         self._pending: deque[tuple[TrackedFrame, Frame | None]] = deque()
+        self._give_up: Callable[[], bool] = lambda: False  # stop waiting for the worker (a signal while draining)
         self._journal = TumJournal(cfg.output / "trajectory_online.txt", ONLINE_HEADER + " (run in progress)") \
             if journal else None
+        self._run_journal = RunJournal(cfg.output / JOURNAL_NAME, {
+            "pid": os.getpid(), "started": time.time(), "run_mode": cfg.run_mode.value, "sequence": str(cfg.sequence),
+            "use_odometry": self.use_odometry, "use_ground": self.vo.plan.use_ground}) if journal else None
+        self._window: list[int] = []  # keyframes in the back end's window after the latest result
+        self._kf_time: dict[int, float] = {}
+        self._last_kf_t: float | None = None  # the newest finished keyframe's time
 
     # The per-frame state lives in the streaming object; these views keep the pipeline's names.
     @property
@@ -169,49 +178,40 @@ class Pipeline:
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> RunResult:
-        """Process every frame. Ctrl-C and SIGTERM stop the run between two frames, so the
-        outputs always describe whole frames; a second Ctrl-C aborts at once."""
+        """Process every frame. Ctrl-C and SIGTERM stop the run between two frames, so the outputs always describe
+        whole frames (a second Ctrl-C aborts the frame in progress); the back end's keyframes in flight are then
+        still waited for, unless one more signal comes (``runtime/stop.py``)."""
         t_start = time.perf_counter()
-        stop: dict = {"signal": None}
-
-        def on_signal(signum, frame):
-            if stop["signal"] is not None and signum == signal.SIGINT:
-                raise KeyboardInterrupt
-            stop["signal"] = signum
-
-        previous = {}
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            # Not in the main thread: no handlers, Ctrl-C raises as usual.
-            with contextlib.suppress(ValueError):
-                previous[sig] = signal.signal(sig, on_signal)
         interrupted = False
-        try:
-            self._loop(stop)
-        except KeyboardInterrupt:
-            interrupted = True
-        finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
-            if self.worker is not None:
-                self.worker.close()
-        if stop["signal"] is not None or interrupted:
-            interrupted = True
+        with stop.guarded(stop.Phase.DEFER):
+            try:
+                self._loop()
+            except stop.Interrupted:
+                interrupted = True
+            finally:
+                if self.worker is not None:
+                    self.worker.close()
+            interrupted = interrupted or stop.requested() is not None
+        if interrupted:
             last = self.frames[-1][0] if self.frames else -1
             log.warning("interrupted after frame %d: writing the results so far", last)
         return self.result(time.perf_counter() - t_start, interrupted)
 
-    def _loop(self, stop: dict) -> None:
+    def _loop(self) -> None:
         """Every frame through the front end (and the back end, or the worker), then the back end drained."""
         n_total = len(self.provider)
-        for item in self.provider:
-            self._step(item, item.index == n_total - 1)
-            if self.progress is not None:
-                self.progress(len(self.frames), len(self.kf_frames))
-            if stop["signal"] is not None:
-                break
+        with stop.abortable():
+            for item in self.provider:
+                self._step(item, item.index == n_total - 1)
+                if self.progress is not None:
+                    self.progress(len(self.frames), len(self.kf_frames))
+                if stop.requested() is not None:
+                    break
+        n_signals = stop.count()
+        self._give_up = lambda: stop.count() > n_signals  # one more signal: stop waiting for the back end
         self._drain(block=True)  # keyframes still with the back-end process
         if self.worker is not None:
-            report = self.worker.finish()
+            report = self.worker.finish(give_up=self._give_up)
             self.vo.remote_report = report if report is not None else ScaleReport.lost(self.use_odometry)
 
     def result(self, wall_s: float = 0.0, interrupted: bool = True) -> RunResult:
@@ -263,7 +263,7 @@ class Pipeline:
             bo = None
             if tracked.is_keyframe:
                 assert self.worker is not None
-                bo = self.worker.result(block=block)
+                bo = self.worker.result(block=block, give_up=self._give_up)
                 if bo is None:
                     return
             self._pending.popleft()
@@ -280,16 +280,47 @@ class Pipeline:
             self.records.append(self._record(est.frontend, est.backend, est.note, est.latency_ms))
         if self.viewer is not None:
             self.viewer.log_frame(frame, est)
+        self._journal_frame(est, bo)
+
+    def _journal_frame(self, est: FrameEstimate, bo: BackendOutput | None) -> None:
+        """The frame's lines in the journals; at a keyframe, the keyframes that left the window (final) too, and a
+        flush: a kill loses at most the frames since the last finished keyframe."""
         if self._journal is not None:
             self._journal.add(est.timestamp, est.T_world_base)
-            if est.is_keyframe:
-                self._journal.flush()
+        if self._run_journal is not None:
+            odo = self.vo.wheels.view() if self.use_odometry else None
+            wheel_m = None
+            if odo is not None and self._last_kf_t is not None and est.timestamp > self._last_kf_t:
+                wheel_m = odo.distance(self._last_kf_t, est.timestamp)
+            self._run_journal.frame(self.records[-1], est.T_world_base, wheel_m)
+        if bo is not None:
+            self._kf_time[est.frame_index] = est.timestamp
+            final = [k for k in self._window if k not in bo.keyframe_poses] + list(bo.earlier_keyframe_poses)
+            if self._run_journal is not None:
+                for k in dict.fromkeys(final):
+                    if k in self._kf_time and k in self.vo.kf_pose_by_frame:
+                        self._run_journal.keyframe(k, self._kf_time[k], self.vo.kf_pose_by_frame[k])
+            self._window = list(bo.keyframe_poses)
+        if est.is_keyframe:
+            self._last_kf_t = est.timestamp
+            for j in (self._journal, self._run_journal):
+                if j is not None:
+                    j.flush()
 
     def close(self) -> None:
-        """Close the online journal (``trajectory_online.txt``); the final outputs are written by the caller."""
+        """Close the online journal (``trajectory_online.txt``) and flush the run journal; the final outputs are
+        written by the caller, which then closes the run journal (:meth:`end_journal`)."""
         if self._journal is not None:
             self._journal.close()
             self._journal = None
+        if self._run_journal is not None:
+            self._run_journal.flush()
+
+    def end_journal(self, end: str | None) -> None:
+        """Close the run journal, marking how the run ended once its outputs are written (None: it failed)."""
+        if self._run_journal is not None:
+            self._run_journal.close(end)
+            self._run_journal = None
 
     def _record(self, fo: FrontendOutput, bo: BackendOutput | None, note: str, latency_ms: float) -> FrameRecord:
         return FrameRecord(

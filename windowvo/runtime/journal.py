@@ -1,0 +1,176 @@
+"""The run journal ``journal.jsonl``: what a hard kill (SIGKILL, out of memory, power loss) cannot take back.
+
+One JSON object per line, append-only, header first; the lines are flushed to the OS at every keyframe, so a
+process killed at any moment loses at most the frames since the last keyframe that was finished. Lines:
+
+- ``{"journal": "windowvo", "version": 1, ...}``: the header (written and flushed when the run starts);
+- ``{"frame": {stats.csv row}, "T_online": [16], "wheel_m": d}``: every frame, as it is finished (its stats row,
+  its causal pose, the wheel distance driven since the previous keyframe: the smoothed trajectory places the
+  frames between two keyframes by it);
+- ``{"keyframe": i, "t": t, "T_world_base": [16]}``: a keyframe's smoothed pose once it is final (it left the
+  fixed-lag window: marginalised, never changed again). A monocular run made metric late rescales every keyframe
+  before the window: they are journaled again, and the last line of a keyframe is its pose;
+- ``{"end": "complete" | "interrupted" | "resumed"}``: the run ended and its outputs were written (by ``--resume``
+  after a kill).
+
+:func:`read_journal` reads a (possibly cut) journal back and :func:`resumed_trajectory` rebuilds the smoothed
+trajectory from it (``python -m windowvo.run CONFIG --resume``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import WindowVOError
+from ..geometry import interpolate_T, inv_T
+from ..io.trajectory import Trajectory
+from ..types import FrameRecord
+
+JOURNAL_NAME = "journal.jsonl"
+JOURNAL_VERSION = 1
+
+
+class JournalError(WindowVOError):
+    """The journal is missing, not a windowvo journal, or holds no frame."""
+
+
+class RunJournal:
+    """Appends the journal's lines; :meth:`flush` (at every keyframe) hands them to the OS."""
+
+    def __init__(self, path: Path, header: dict):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh = self.path.open("w")
+        self._pending: list[str] = [json.dumps({"journal": "windowvo", "version": JOURNAL_VERSION, **header})]
+        self.flush()
+
+    def frame(self, record: FrameRecord, T_online: np.ndarray, wheel_m: float | None) -> None:
+        self._pending.append(json.dumps({"frame": dataclasses.asdict(record), "T_online": _flat(T_online),
+                                         "wheel_m": wheel_m}))
+
+    def keyframe(self, index: int, t: float, T_world_base: np.ndarray) -> None:
+        self._pending.append(json.dumps({"keyframe": int(index), "t": float(t), "T_world_base": _flat(T_world_base)}))
+
+    def flush(self) -> None:
+        if self._pending and not self._fh.closed:
+            self._fh.write("\n".join(self._pending) + "\n")
+            self._fh.flush()
+            self._pending = []
+
+    def close(self, end: str | None = None) -> None:
+        if self._fh.closed:
+            return
+        if end is not None:
+            self._pending.append(json.dumps({"end": end}))
+        self.flush()
+        self._fh.close()
+
+
+def mark_end(path: Path, end: str) -> None:
+    """Append an end line to a journal whose run could not (``--resume`` wrote its outputs)."""
+    with Path(path).open("a") as fh:
+        fh.write(json.dumps({"end": end}) + "\n")
+
+
+def _flat(T: np.ndarray) -> list[float]:
+    return [float(v) for v in np.asarray(T, float).ravel()]
+
+
+@dataclass
+class JournalContents:
+    """What a journal holds: the header, one entry per finished frame, the final keyframe poses."""
+
+    header: dict
+    records: list[FrameRecord] = field(default_factory=list)
+    online: list[np.ndarray] = field(default_factory=list)  # causal T_world_base per frame
+    wheel_m: list[float | None] = field(default_factory=list)
+    final_keyframes: dict[int, tuple[float, np.ndarray]] = field(default_factory=dict)  # index -> (t, T_world_base)
+    end: str | None = None
+    n_bad_lines: int = 0  # unreadable lines (the last one, cut by the kill)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return np.asarray([r.timestamp for r in self.records], float)
+
+
+def read_journal(path: Path) -> JournalContents:
+    """Read a journal, skipping a line cut short by a kill."""
+    try:
+        lines = Path(path).read_text(errors="replace").splitlines()
+    except OSError as err:
+        raise JournalError(f"no journal to resume from: {err.strerror}: {path}") from None
+    header = _parse(lines[0]) if lines else None
+    if not isinstance(header, dict) or header.get("journal") != "windowvo":
+        raise JournalError(f"{path} is not a windowvo journal")
+    out = JournalContents(header)
+    names = {f.name for f in dataclasses.fields(FrameRecord)}
+    for line in lines[1:]:
+        obj = _parse(line)
+        if not isinstance(obj, dict):
+            out.n_bad_lines += 1
+        elif "frame" in obj:
+            out.records.append(FrameRecord(**{k: v for k, v in obj["frame"].items() if k in names}))
+            out.online.append(np.asarray(obj["T_online"], float).reshape(4, 4))
+            out.wheel_m.append(obj.get("wheel_m"))
+        elif "keyframe" in obj:
+            out.final_keyframes[int(obj["keyframe"])] = (float(obj["t"]),
+                                                         np.asarray(obj["T_world_base"], float).reshape(4, 4))
+        elif "end" in obj:
+            out.end = str(obj["end"])
+    return out
+
+
+def _parse(line: str) -> object:
+    try:
+        return json.loads(line)
+    except ValueError:
+        return None
+
+
+def resumed_trajectory(j: JournalContents) -> Trajectory:
+    """One pose per journaled frame: the final keyframes as smoothed, the frames between two of them placed along
+    their segment (by wheel distance when the run used wheels, else by time) as the finished run places them, and
+    the frames after the last final keyframe moved on from it by their causal poses' relative motion."""
+    if not j.records:
+        return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+    index_of = {r.frame_index: i for i, r in enumerate(j.records)}
+    kfs = sorted((index_of[k], t, T) for k, (t, T) in j.final_keyframes.items() if k in index_of)
+    if not kfs:
+        return Trajectory(j.timestamps, np.stack(j.online))
+    poses = []
+    rows = [row for row, _, _ in kfs]
+    for i, rec in enumerate(j.records):
+        pos = int(np.searchsorted(rows, i, side="right")) - 1
+        if pos < 0:
+            poses.append(kfs[0][2])
+        elif kfs[pos][0] == i:
+            poses.append(kfs[pos][2])
+        elif pos == len(kfs) - 1:
+            row, _, T_kf = kfs[pos]
+            poses.append(T_kf @ inv_T(j.online[row]) @ j.online[i])
+        else:
+            (r0, t0, T0), (r1, t1, T1) = kfs[pos], kfs[pos + 1]
+            poses.append(interpolate_T(T0, T1, _fraction(j, i, r0, r1, rec.timestamp, t0, t1)))
+    return Trajectory(j.timestamps, np.stack(poses))
+
+
+def _fraction(j: JournalContents, i: int, r0: int, r1: int, t: float, t0: float, t1: float) -> float:
+    """How far frame row ``i`` is along the keyframe segment ``r0 -> r1`` (the finished run's rule)."""
+    s = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
+    w, w1 = j.wheel_m[i], j.wheel_m[r1]
+    consecutive = not any(r.is_keyframe for r in j.records[r0 + 1:r1])
+    if consecutive and w is not None and w1 is not None and w1 > 1e-3:
+        s = w / w1
+    return float(np.clip(s, 0.0, 1.0)) if math.isfinite(s) else 0.0
+
+
+def last_final_frame(j: JournalContents) -> int | None:
+    """Index (in the journal's frame order) of the last frame at or before the last final keyframe."""
+    rows = [i for i, r in enumerate(j.records) if r.frame_index in j.final_keyframes]
+    return max(rows) if rows else None
