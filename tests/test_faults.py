@@ -317,8 +317,6 @@ def test_a_reflected_T_base_cam_is_refused(seq, tmp_path):
     assert "reflection" in one_line_error(r)
 
 
-@pytest.mark.xfail(strict=True, reason="the message lives in io/sequence.py (another helper's file): check the "
-                                       "frame count before check_odometry_overlap")
 def test_one_frame_says_so(seq, tmp_path):
     one = tmp_path / "seq"
     shutil.copytree(seq, one)

@@ -150,6 +150,8 @@ class OdometryNoiseConfig(_Section):
                                    "residual; default: from the chi-square quantile of backend.robust_confidence")
     max_gap_s: float = Field(0.5, gt=0, description="longest gap in the wheel odometry bridged; over it the step is "
                                                     "vision only")
+    max_speed_m_s: float = Field(60.0, gt=0, description="a wheel sample implying a faster motion since the previous "
+                                 "one (plus 0.5 m) is a teleport: rejected with a warning, that step vision only")
 
 
 class PlanarPriorConfig(_Section):

@@ -27,7 +27,7 @@ examples:
   python -m windowvo.run configs/example.yaml             # your own sequence folder
   python -m windowvo.run configs/example.yaml frontend.max_features=300 viz.rerun=off
 
-A config needs only `sequence:` (a native sequence folder) and `output:`; relative
+A config needs only sequence: (a native sequence folder) and output:; relative
 paths are resolved against the config file. Every other key has a default; see the README's
 config reference. Outputs: trajectory.txt (TUM, one line per frame), stats.csv,
 config_resolved.yaml, summary.json and recording.rrd (when viz.rerun=save).
@@ -41,7 +41,7 @@ Exit codes: 0 done, 2 bad input or configuration, 130 interrupted by SIGINT, 143
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="windowvo",
+        prog="python -m windowvo.run",
         description="windowvo: sliding-window visual odometry (OpenCV front end, GTSAM fixed-lag smoother) "
         "for ground robots, with wheel odometry for metric scale.",
         epilog=EPILOG,

@@ -77,6 +77,9 @@ def finish_sequence(seq: Sequence, cfg: Config) -> Sequence:
     """Apply the config-level options common to every loader (synthetic wheel odometry)."""
     from ..errors import SequenceError
     from .odometry_synthesis import synthesize_odometry
+    from .sequence import require_two_frames
+
+    require_two_frames(len(seq), seq.root)
 
     osyn = cfg.odometry_synthesis
     if osyn.enabled and seq.odometry is None:

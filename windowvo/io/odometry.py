@@ -19,7 +19,7 @@ log = logging.getLogger(__name__)
 
 # Faster than any ground vehicle: a wheel sample that moves the base faster than this since the previous one (plus
 # TELEPORT_SLACK_M for timestamp jitter) is a teleport (an odometry reset, a corrupt message), not motion. Proposed
-# config key: backend.odometry.max_speed_m_s.
+# The default of the config key backend.odometry.max_speed_m_s.
 MAX_WHEEL_SPEED_M_S = 60.0
 TELEPORT_SLACK_M = 0.5
 

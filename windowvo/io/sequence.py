@@ -283,6 +283,7 @@ def load_native(root: Path | str, fps: float = 20.0) -> Sequence:
         raise CalibrationError(
             f"camera.yaml says {camera.width}x{camera.height} but {images[0].name} is {first.shape[1]}x{first.shape[0]}"
         )
+    require_two_frames(len(timestamps), root / "images")
     odometry = None
     odo_path = root / "odometry.csv"
     if odo_path.is_file():
@@ -297,6 +298,12 @@ def load_native(root: Path | str, fps: float = 20.0) -> Sequence:
             # Ground truth only feeds the evaluation: a broken file must not stop the run.
             warnings.append(f"ground truth ignored, no evaluation: {err}")
     return Sequence(root, images, timestamps, camera, odometry, groundtruth, warnings, name=root.name)
+
+
+def require_two_frames(n_frames: int, where: Path | str) -> None:
+    """Odometry needs motion between frames: one frame (or none) is a clear error, before anything else."""
+    if n_frames < 2:
+        raise SequenceError(f"{'one frame only' if n_frames == 1 else 'no frame'}: need at least 2 (in {where})")
 
 
 def check_odometry_overlap(odo: WheelOdometry, timestamps: np.ndarray) -> list[str]:

@@ -88,7 +88,7 @@ def _log_plan(pipe: Pipeline, seq: Sequence) -> None:
         calib = ", calibrated online once the floor is in view" if plan.calibration_wanted else ""
         log.info("scale sources: wheel odometry%s%s; %s", label, calib, ground)
     elif plan.use_ground:
-        log.info("no wheel odometry: monocular run made metric by %s", ground)
+        log.info("no wheel odometry: monocular run, metric scale from %s once the floor is in view (up to scale before)", ground)
     else:
         log.warning("no wheel odometry and no ground cue: monocular run, the trajectory is up to scale")
 

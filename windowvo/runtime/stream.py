@@ -88,6 +88,7 @@ class Odometry:
         self.frontend = Frontend(camera, cfg.frontend.model_copy(update={"detection_order": order}), cfg.keyframes,
                                  cfg.gates, static_mask)
         self.wheels = WheelBuffer(extrapolate_s=cfg.backend.odometry.max_gap_s, comment=wheel_comment)
+        self.wheels.max_speed_m_s = cfg.backend.odometry.max_speed_m_s
         self.frames: list[tuple[int, float]] = []  # (frame index, timestamp) of every frame, skipped ones too
         self.online: list[np.ndarray] = []  # causal T_world_base per frame
         self.kf_frames: list[int] = []

@@ -327,13 +327,14 @@ def finished_summary(plan: RunPlan) -> tuple[dict, dict] | None:
 
 
 def make_task(plan: RunPlan, timeout_s: float | None) -> Task:
-    """Write the run's config and return its task (stale results of an earlier run are removed first)."""
+    """Write the run's config and return its task (stale results of an earlier run are removed first; the run
+    itself moves an earlier attempt's files aside: ``--force``, since the batch decided that this run is due)."""
     plan.run_dir.mkdir(parents=True, exist_ok=True)
     for name in (RUN_MARKER, "summary.json"):
         (plan.run_dir / name).unlink(missing_ok=True)
     job = plan.run_dir / JOB_CONFIG
     job.write_text(yaml.safe_dump(plan.resolved, sort_keys=False))
-    return Task(key=plan.run_id, args=("-m", "windowvo.run", str(job), "--no-progress", "-q"), timeout_s=timeout_s,
+    return Task(key=plan.run_id, args=("-m", "windowvo.run", str(job), "--no-progress", "-q", "--force"), timeout_s=timeout_s,
                 result_json=str(plan.run_dir / "summary.json"), log_path=str(plan.run_dir / "run.log"))
 
 
