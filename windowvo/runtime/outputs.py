@@ -71,6 +71,25 @@ def floor_summary(records: list[FrameRecord], T_base_cam: np.ndarray | None = No
                 round(float(v), 6) for v in levelled_mount(T_base_cam, normal_from_tilt_deg(*tilts[-1][:2])).ravel()]}
 
 
+def _clock_dict(c) -> dict | None:
+    if c is None:
+        return None
+    return {"offset_ms": round(1000.0 * c.offset_s, 2) if c.observable else None,
+            "sigma_ms": round(1000.0 * c.sigma_s, 2) if c.observable else None,
+            "observable": c.observable, "intervals": c.n_intervals, "applied": False}
+
+
+def _clock_line(r: RunResult) -> str | None:
+    c = r.wheel_time_offset
+    if c is None:
+        return None
+    if not c.observable:
+        return (f"wheel clock: offset to the camera not observable ({c.n_intervals} keyframe intervals; it shows in "
+                "turns)")
+    return (f"wheel clock: {1000.0 * c.offset_s:+.1f} ± {1000.0 * c.sigma_s:.1f} ms against the camera's "
+            "(estimated from the turns; reported, not applied)")
+
+
 def summary_dict(report: JobReport, cfg: Config) -> dict:
     """The content of ``summary.json``."""
     r = report.result
@@ -94,6 +113,7 @@ def summary_dict(report: JobReport, cfg: Config) -> dict:
         "wheel_calibration": None if cal is None else {
             "scale": round(cal.scale, 5), "scale_sigma": round(cal.scale_sigma, 5),
             "yaw_bias_per_m": round(cal.yaw_bias_per_m, 6), "yaw_bias_sigma": round(cal.yaw_bias_sigma, 6)},
+        "wheel_time_offset": _clock_dict(r.wheel_time_offset),
         "odometry_synthetic": bool(report.sequence.odometry is not None and report.sequence.odometry.synthetic),
         "interrupted": r.interrupted,
         **floor_summary(r.records, report.sequence.camera.T_base_cam),
@@ -155,6 +175,9 @@ def summary_lines(report: JobReport, summary: dict, out: Path) -> list[str]:
         c = r.wheel_calibration
         lines.append(f"wheel calibration: scale {c.scale:.4f} ± {c.scale_sigma:.4f}, "
                      f"yaw bias {c.yaw_bias_per_m * 1000:.2f} ± {c.yaw_bias_sigma * 1000:.2f} mrad/m")
+    clock = _clock_line(r)
+    if clock is not None:
+        lines.append(clock)
     floor = _floor_line(r, summary)
     if floor is not None:
         lines.append(floor)

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from ..backend.report import ScaleReport
+from ..backend.wheel_clock import ClockEstimate
 from ..config import Config, RunMode
 from ..errors import SequenceError
 from ..io.provider import DataProvider, SkippedFrame
@@ -59,6 +60,7 @@ class RunResult:
     notes: list[str] = field(default_factory=list)
     last_frame_index: int = -1
     trajectory_online: Trajectory | None = None  # causal pose per frame, as a robot had it at that time
+    wheel_time_offset: ClockEstimate | None = None  # the wheels' clock against the camera's (reported, not applied)
 
     @property
     def fps(self) -> float:
@@ -233,6 +235,7 @@ class Pipeline:
             notes=self.notes,
             last_frame_index=self.frames[-1][0] if self.frames else -1,
             trajectory_online=self.vo.online_trajectory(),
+            wheel_time_offset=self.vo.wheel_time_offset(),
         )
 
     def _step(self, item, is_last: bool) -> None:

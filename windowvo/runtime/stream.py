@@ -29,6 +29,7 @@ import numpy as np
 
 from ..backend.report import ScaleReport, plan_scale
 from ..backend.smoother import SlidingWindowBackend
+from ..backend.wheel_clock import ClockEstimate, WheelClock
 from ..camera import CameraModel
 from ..config import Config, load_robot_config, robot_config_from_dict
 from ..errors import WindowVOError
@@ -40,6 +41,12 @@ from ..io.trajectory import Trajectory
 from ..types import BackendOutput, BackendStatus, Frame, FrameEstimate, FrontendOutput, OdometryStep
 
 log = logging.getLogger(__name__)
+
+# Wheel clock: vision's heading change is taken over at least this span (s), from a chain of at most CLOCK_CHAIN
+# keyframes; every interval of the run is kept (the offset of two drivers' clocks is constant).
+CLOCK_SPAN_S = 1.0
+CLOCK_CHAIN = 200
+CLOCK_INTERVALS = 100_000
 
 
 @dataclass
@@ -89,6 +96,9 @@ class Odometry:
                                  cfg.gates, static_mask)
         self.wheels = WheelBuffer(extrapolate_s=cfg.backend.odometry.max_gap_s, comment=wheel_comment)
         self.wheels.max_speed_m_s = cfg.backend.odometry.max_speed_m_s
+        # The wheels' clock against the camera's, from vision's heading changes over CLOCK_SPAN_S (reported).
+        self.clock = WheelClock(window=CLOCK_INTERVALS) if self.use_odometry else None
+        self._vision_yaw: list[tuple[float, float]] = []  # (keyframe time, heading chained from two-view rotations)
         self.frames: list[tuple[int, float]] = []  # (frame index, timestamp) of every frame, skipped ones too
         self.online: list[np.ndarray] = []  # causal T_world_base per frame
         self.kf_frames: list[int] = []
@@ -153,6 +163,7 @@ class Odometry:
         fo = self.frontend.process(Frame(idx, float(t), image, mask), self._odom_since_kf(t), force_keyframe=is_last)
         odom, note = None, ""
         if fo.is_keyframe:
+            self._observe_clock(fo, float(t))
             odom = self._odom_step(self.last_kf_time, t) if self.last_kf_time is not None else None
             if odom is not None and not odom.ok:
                 note = "odometry gap: vision only"
@@ -160,6 +171,31 @@ class Odometry:
             self.kf_times.append(float(t))
             self.last_kf_time = float(t)
         return self._tracked(TrackedFrame(idx, float(t), t_in, fo, odom, note))
+
+    def _observe_clock(self, fo: FrontendOutput, t: float) -> None:
+        """Chain vision's heading changes between keyframes (the front end's two-view rotations, no wheels in them)
+        and give the wheel clock the change over the last ``CLOCK_SPAN_S``; a keyframe without one restarts it."""
+        if self.clock is None:
+            return
+        if self.last_kf_time is None or fo.R_cam_kf_cam is None or not self._vision_yaw:
+            self._vision_yaw = [(t, 0.0)]
+            return
+        R_bc = self.camera.T_base_cam[:3, :3]
+        R = R_bc @ fo.R_cam_kf_cam.T @ R_bc.T  # base rotation from the last keyframe to this one
+        self._vision_yaw.append((t, self._vision_yaw[-1][1] + float(np.arctan2(R[1, 0], R[0, 0]))))
+        for t0, yaw0 in reversed(self._vision_yaw[:-1]):
+            if t - t0 >= CLOCK_SPAN_S:
+                self.clock.add(t0, t, self._vision_yaw[-1][1] - yaw0)
+                break
+        del self._vision_yaw[:-CLOCK_CHAIN]
+
+    def wheel_time_offset(self) -> ClockEstimate | None:
+        """The wheels' time offset to the camera (``t_wheels = t_camera + offset_s``) from the keyframes so far;
+        None without wheels. Reported, not applied to the wheel readings."""
+        odo = self._wheels()
+        if self.clock is None or odo is None:
+            return None
+        return self.clock.update(odo)
 
     def track_skipped(self, index: int, t: float, reason: str) -> TrackedFrame:
         return self._tracked(TrackedFrame(index, float(t), time.perf_counter(), None, None, f"skipped: {reason}"))
