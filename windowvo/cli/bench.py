@@ -33,7 +33,8 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m windowvo.bench", description=first_line(_tools_bench.__doc__),
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog=plain_help("\n".join((_tools_bench.__doc__ or "").splitlines()[1:])))
-    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun", "memory", "bag", "modes"])
+    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun", "memory", "bag", "modes", "scale"],
+                   help="scale: the scale suite (fused cues against each cue alone, windowvo/tools/scale_suite.py)")
     p.add_argument("--out", default="windowvo_output/bench", help="outputs, JSON and plots")
     p.add_argument("--cache", default="windowvo_output/bench_cache", help="rendered sequences (reused)")
     p.add_argument("--duration", type=float, default=30.0, help="seconds of each synthetic sequence")
@@ -129,6 +130,20 @@ def _memory(cache: Path, out: Path) -> dict:
     return mem
 
 
+def _scale(a, out: Path, cache: Path) -> dict:
+    from ..tools import scale_suite
+
+    cases = scale_suite.suite_cases()
+    if a.only:
+        cases = [c for c in cases if c.name in a.only]
+    rows = scale_suite.run_suite(cases, cache / "scale", out / "scale", a.jobs)
+    s = scale_suite.write_results(rows, out / "scale")
+    print("## Scale suite: fused cues against each cue alone (ATE m)\n")
+    print(scale_suite.table(rows) + "\n")
+    print(scale_suite.summary_text(s) + "\n")
+    return {"rows": rows, "summary": s}
+
+
 def _bag(cache: Path, out: Path) -> dict:
     bag_res = bench_bag(cache, out)
     print("## ROS bag input (frames streamed)\n\n| bag | MB | frames | keyframes | fps | peak RSS MB |\n"
@@ -153,7 +168,8 @@ def main(argv=None) -> int:
     cache.mkdir(parents=True, exist_ok=True)
     suites = {"sequences": lambda: _sequences(a, out, cache), "frontend": lambda: _frontend(cache),
               "backend": lambda: _backend(a.backend_keyframes), "rerun": lambda: _rerun(cache, out),
-              "modes": lambda: _modes(cache, out), "memory": lambda: _memory(cache, out), "bag": lambda: _bag(cache, out)}
+              "modes": lambda: _modes(cache, out), "memory": lambda: _memory(cache, out), "bag": lambda: _bag(cache, out),
+              "scale": lambda: _scale(a, out, cache)}
     results: dict = {name: run() for name, run in suites.items() if name in a.suite}
     (out / "bench.json").write_text(json.dumps(results, indent=2, default=float))
     print(f"results: {out / 'bench.json'}")

@@ -1,0 +1,46 @@
+"""The scale suite's cases and its summary (the runs themselves are the benchmark's, not a test's)."""
+
+from __future__ import annotations
+
+import math
+
+from conftest import SHARED_DATA
+
+from windowvo.tools import scale_suite as ss
+
+
+def test_the_suite_has_thirty_sequences_of_every_scene_kind():
+    cases = ss.suite_cases()
+    kinds = {c.scene for c in cases}
+    assert {"room", "warehouse", "street"} <= kinds
+    if SHARED_DATA.is_dir():
+        assert "kitti" in kinds and len(cases) >= 30
+    assert len({c.name for c in cases}) == len(cases)
+    # the wheel errors vary what the estimator does not model
+    wheels = [c.spec["wheel"] for c in cases if c.scene != "kitti"]
+    assert {w["scale_error"] > 0 for w in wheels} == {True, False}
+    assert any(w["yaw_scale_error"] != 0 for w in wheels) and any(w["slip_windows"] for w in wheels)
+    assert any(c.spec.get("vibration_deg", 0) > 0 for c in cases if c.scene != "kitti")
+
+
+def test_every_rendered_case_is_a_valid_spec():
+    for c in ss.rendered_cases():
+        spec = ss.synth_spec(c)
+        assert spec.duration_s == ss.DURATION_S and spec.scene.value == c.scene
+
+
+def _row(name, fused, floor, wheels, alone, sim3=0.01, scene="room"):
+    way = lambda se3: {"se3": se3, "sim3": sim3}  # noqa: E731
+    return {"sequence": name, "scene": scene, "fused": way(fused), "floor": way(floor), "wheels": way(wheels),
+            "none": way(float("nan")), "wheels_alone": way(alone),
+            "fused_over_best": fused / min(floor, wheels), "fused_se3_over_sim3": fused / sim3}
+
+
+def test_the_summary_is_the_distribution_of_fused_over_the_best_cue():
+    rows = [_row("a", 0.02, 0.01, 0.04, 0.5), _row("b", 0.01, 0.02, 0.01, 0.005), _row("c", 0.03, 0.03, 0.06, 0.2)]
+    s = ss.summary(rows)
+    assert math.isclose(s["fused_over_best_gmean"], (2.0 * 1.0 * 1.0) ** (1 / 3))
+    assert s["fused_over_best_worst"] == 2.0
+    assert math.isclose(s["share_within_1.1x"], 2 / 3)
+    assert s["fused_worse_than_wheels_alone"] == 1  # b: 0.01 m against the wheels' 0.005 m
+    assert "2.00x" in ss.table(rows) and "3 sequences" in ss.summary_text(s)
