@@ -81,7 +81,11 @@ def compare(ref: Path, new: Path) -> int:
                 bad += 1
                 continue
             if f == "summary.json":
-                same = _summary(a) == _summary(b)
+                sa, sb = _summary(a), _summary(b)
+                same = sa == sb
+                if not same:
+                    keys = sorted(k for k in set(sa) | set(sb) if sa.get(k) != sb.get(k))
+                    print(f"{name}/{f}: keys differ: {', '.join(keys)}")
             elif f == "stats.csv":
                 same = _stats(a) == _stats(b)
             elif f == "config_resolved.yaml":
