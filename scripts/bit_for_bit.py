@@ -84,7 +84,7 @@ def compare(ref: Path, new: Path) -> int:
                 sa, sb = _summary(a), _summary(b)
                 same = sa == sb
                 if not same:
-                    keys = sorted(k for k in set(sa) | set(sb) if sa.get(k) != sb.get(k))
+                    keys = sorted(k for k in set(sa) | set(sb) if k not in sa or k not in sb or sa[k] != sb[k])
                     print(f"{name}/{f}: keys differ: {', '.join(keys)}")
             elif f == "stats.csv":
                 same = _stats(a) == _stats(b)
