@@ -153,7 +153,7 @@ def test_bench_peak_rss_is_the_worker_own():
 
     block = bytearray(300 * 2**20)
     block[:: 4096] = b"\x01" * len(block[:: 4096])
-    code = "from windowvo.tools.bench import _peak_rss_mb; print(_peak_rss_mb())"
+    code = "from windowvo.tools.bench import peak_rss_mb; print(peak_rss_mb())"
     peak = float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
     del block
     assert 5.0 < peak < 150.0
@@ -180,16 +180,16 @@ def test_bench_cpu_accounting_counts_threads_and_ended_children():
     import subprocess
     import threading
 
-    from windowvo.tools.bench import _cpu_with_children_s
+    from windowvo.tools.bench import cpu_with_children_s
 
     burn = "import time\nt = time.thread_time()\nwhile time.thread_time() - t < 0.3: pass\n"
-    before = _cpu_with_children_s()
+    before = cpu_with_children_s()
     th = threading.Thread(target=exec, args=(burn,))
     th.start()
     th.join()
-    after_thread = _cpu_with_children_s()
+    after_thread = cpu_with_children_s()
     subprocess.run([sys.executable, "-c", burn], check=True)
-    after_child = _cpu_with_children_s()
+    after_child = cpu_with_children_s()
     assert after_thread - before >= 0.29
     assert after_child - after_thread >= 0.29
 

@@ -13,6 +13,7 @@ from ..config import apply_overrides, config_from_dict
 from ..errors import WindowVOError, cli_error
 from ..tools import bench as _tools_bench
 from ..tools.bench import (
+    CaseKind,
     bench_backend,
     bench_bag,
     bench_frontend,
@@ -53,7 +54,7 @@ def _sequences(a, out: Path, cache: Path) -> list[dict]:
         cases = [c for c in cases if c.name in a.only]
     # Render first, in this process, so that each run's peak RSS is the pipeline's own.
     for c in cases:
-        if c.kind == "synth":
+        if c.kind is CaseKind.SYNTH:
             ensure_rendered(c, cache)
     if a.set:
         print(f"config overrides for every run: {' '.join(a.set)}\n")

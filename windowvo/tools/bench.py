@@ -29,6 +29,7 @@ Numbers are what this machine measured; nothing is enforced here.
 
 from __future__ import annotations
 
+import enum
 import os
 import resource
 import sys
@@ -52,10 +53,17 @@ KITTI_WHEEL_SCALE_ERRORS = (0.01, 0.02)
 KITTI_WHEEL_YAW_BIAS_PER_M = 0.005
 
 
+class CaseKind(str, enum.Enum):
+    """Where a benchmark sequence comes from."""
+
+    SYNTH = "synth"  # rendered (windowvo.synth)
+    KITTI = "kitti"  # a KITTI excerpt in ../shared/data
+
+
 @dataclass
 class SeqCase:
     name: str
-    kind: str  # synth | kitti
+    kind: CaseKind
     spec: dict | None = None
     path: Path | None = None
     kitti_wheel_scale_error: float | None = 0.01  # KITTI only: scale error of the synthetic wheels (None: no wheels)
@@ -64,7 +72,7 @@ class SeqCase:
     def wheel_scale_error(self) -> float | None:
         """The wheels' distance scale error (reported = (1 + e) * true; None: no wheels, a monocular run);
         the estimator is not told."""
-        if self.kind == "kitti":
+        if self.kind is CaseKind.KITTI:
             return self.kitti_wheel_scale_error
         from ..synth.generate import WheelErrorModel
 
@@ -76,24 +84,24 @@ def synthetic_cases(duration: float) -> list[SeqCase]:
     from ..synth.paths import PathKind
 
     return [
-        SeqCase("loop", "synth", dict(path=PathKind.LOOP, duration_s=duration, seed=31)),
-        SeqCase("figure_eight_vibration", "synth",
+        SeqCase("loop", CaseKind.SYNTH, dict(path=PathKind.LOOP, duration_s=duration, seed=31)),
+        SeqCase("figure_eight_vibration", CaseKind.SYNTH,
                 dict(path=PathKind.FIGURE_EIGHT, duration_s=duration, seed=32, vibration_deg=1.5)),
-        SeqCase("ramp", "synth", dict(path=PathKind.RAMP, duration_s=duration, seed=33)),
-        SeqCase("stop_and_go", "synth", dict(path=PathKind.STOP_AND_GO, duration_s=duration, seed=34, image_noise=1.0)),
-        SeqCase("wheel_slip", "synth", dict(path=PathKind.LOOP, duration_s=duration, seed=35,
+        SeqCase("ramp", CaseKind.SYNTH, dict(path=PathKind.RAMP, duration_s=duration, seed=33)),
+        SeqCase("stop_and_go", CaseKind.SYNTH, dict(path=PathKind.STOP_AND_GO, duration_s=duration, seed=34, image_noise=1.0)),
+        SeqCase("wheel_slip", CaseKind.SYNTH, dict(path=PathKind.LOOP, duration_s=duration, seed=35,
                                             wheel=WheelErrorModel(slip_windows=[(8.0, 10.0, 0.4), (20.0, 21.5, 0.5)]))),
-        SeqCase("loop_wheels+2pct", "synth", dict(path=PathKind.LOOP, duration_s=duration, seed=36,
+        SeqCase("loop_wheels+2pct", CaseKind.SYNTH, dict(path=PathKind.LOOP, duration_s=duration, seed=36,
                                                   wheel=WheelErrorModel(scale_error=0.02))),
-        SeqCase("loop_wheels-3pct", "synth", dict(path=PathKind.LOOP, duration_s=duration, seed=37,
+        SeqCase("loop_wheels-3pct", CaseKind.SYNTH, dict(path=PathKind.LOOP, duration_s=duration, seed=37,
                                                   wheel=WheelErrorModel(scale_error=-0.03))),
         # A rocking base with a large wheel error: the online calibration's known weak spot (README).
-        SeqCase("figure_eight_vibration_wheels-3pct", "synth",
+        SeqCase("figure_eight_vibration_wheels-3pct", CaseKind.SYNTH,
                 dict(path=PathKind.FIGURE_EIGHT, duration_s=duration, seed=62, vibration_deg=1.0,
                      wheel=WheelErrorModel(scale_error=-0.03))),
         # A camera mount pitched 1 deg off its calibration: the ground cue's scale pays for it until the
         # learnt floor tilt is significant (backend.ground.mount_calibration auto) and after, if it is off.
-        SeqCase("loop_mount_pitch+1deg", "synth",
+        SeqCase("loop_mount_pitch+1deg", CaseKind.SYNTH,
                 dict(path=PathKind.LOOP, duration_s=duration, seed=63, calib_pitch_error_deg=1.0)),
     ]
 
@@ -106,12 +114,12 @@ def kitti_cases() -> list[SeqCase]:
         if (SHARED_DATA / name).is_dir():
             for i, err in enumerate(KITTI_WHEEL_SCALE_ERRORS):
                 case_name = name if i == 0 else f"{name}_wheels{100 * err:+.0f}pct"
-                out.append(SeqCase(case_name, "kitti", path=SHARED_DATA / name, kitti_wheel_scale_error=err))
-            out.append(SeqCase(f"{name}_monocular", "kitti", path=SHARED_DATA / name, kitti_wheel_scale_error=None))
+                out.append(SeqCase(case_name, CaseKind.KITTI, path=SHARED_DATA / name, kitti_wheel_scale_error=err))
+            out.append(SeqCase(f"{name}_monocular", CaseKind.KITTI, path=SHARED_DATA / name, kitti_wheel_scale_error=None))
     return out
 
 
-def _peak_rss_mb() -> float:
+def peak_rss_mb() -> float:
     """Peak resident memory of this process image (Linux ``VmHWM``).
 
     Not ``getrusage``: its ``ru_maxrss`` survives fork and exec, so a worker started by the
@@ -181,7 +189,7 @@ def case_config_data(case: SeqCase, cache: Path, out_root: Path, rerun: bool = F
     ``dotted.key=value`` as on the run's command line); renders a synthetic case. Sequential mode, so
     each stage's timing is its own (``--suite modes`` measures the pipelined run)."""
     data: dict = {"progress": False, "viz": {"rerun": "save" if rerun else "off"}, "run_mode": "sequential"}
-    if case.kind == "synth":
+    if case.kind is CaseKind.SYNTH:
         seq_dir = ensure_rendered(case, cache)
         data["sequence"] = str(seq_dir)
     else:
@@ -236,7 +244,7 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False,
         raise SequenceError(f"bench sequence {case.name!r} has no ground truth")
     row: dict = {
         "sequence": case.name,
-        "kind": case.kind,
+        "kind": case.kind.value,
         "wheel_scale_error": case.wheel_scale_error,
         "frames": r.n_frames,
         "keyframes": r.n_keyframes,
@@ -244,7 +252,7 @@ def run_case(case: SeqCase, cache: Path, out_root: Path, rerun: bool = False,
         "frontend_ms_mean": float(np.mean(r.frontend_ms)) if r.frontend_ms else float("nan"),
         "backend_ms_median": _median(r.backend_ms),
         "backend_ms_p95": float(np.percentile(r.backend_ms, 95)) if r.backend_ms else float("nan"),
-        "peak_rss_mb": _peak_rss_mb(),  # before the second run, so it is this run's
+        "peak_rss_mb": peak_rss_mb(),  # before the second run, so it is this run's
         "resets": r.n_resets,
         "windowvo": _method_row(rep.accuracy, gt, r.trajectory, r.metric),
         "windowvo_online": _acc_row(rep.online_accuracy),
@@ -291,15 +299,15 @@ def sequences_caption(rows: list[dict]) -> str:
     """Which wheels each sequence had (none of this is told to the estimator) and what the columns compare."""
     groups: dict[tuple[str, float | None], list[str]] = {}
     for r in rows:
-        groups.setdefault((r.get("kind", "synth"), r["wheel_scale_error"]), []).append(r["sequence"])
+        groups.setdefault((r.get("kind", CaseKind.SYNTH.value), r["wheel_scale_error"]), []).append(r["sequence"])
     parts = []
-    for (kind, err), names in sorted(groups.items(), key=lambda kv: (kv[0][0] != "synth", kv[0][1] is None,
+    for (kind, err), names in sorted(groups.items(), key=lambda kv: (kv[0][0] != CaseKind.SYNTH.value, kv[0][1] is None,
                                                                      kv[0][1] or 0.0)):
         if err is None:
             parts.append(f"no wheels (monocular, the floor at the camera height is the only scale source): "
                          f"{', '.join(names)}")
             continue
-        what = ("rendered wheels" if kind == "synth" else
+        what = ("rendered wheels" if kind == CaseKind.SYNTH.value else
                 f"KITTI, synthetic wheels (yaw bias {KITTI_WHEEL_YAW_BIAS_PER_M} rad/m)")
         parts.append(f"{what} with a {100 * err:+.0f}% scale error: {', '.join(names)}")
     return ("Wheel odometry (reported distance = (1 + scale error) x true; the estimator is not told): "
@@ -457,7 +465,7 @@ def _run_peak_rss(seq_dir: str, out: str, max_frames: int) -> dict:
                             "max_frames": max_frames})
     rep = run_job(cfg)
     return {"frames": rep.result.n_frames, "keyframes": rep.result.n_keyframes, "fps": rep.result.fps,
-            "peak_rss_mb": _peak_rss_mb()}
+            "peak_rss_mb": peak_rss_mb()}
 
 
 def bench_memory(cache: Path, out_root: Path, long_frames: int = 5000) -> dict:
@@ -476,7 +484,7 @@ def bench_memory(cache: Path, out_root: Path, long_frames: int = 5000) -> dict:
     return res
 
 
-def _cpu_with_children_s() -> float:
+def cpu_with_children_s() -> float:
     """CPU seconds (user + system) of this process's threads and of its children that have ended."""
     own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
@@ -487,7 +495,7 @@ def _rerun_job(seq_dir: str, out: str, on: bool) -> dict:
     import logging
 
     logging.basicConfig(level=logging.ERROR)
-    t0, cpu0 = time.perf_counter(), _cpu_with_children_s()
+    t0, cpu0 = time.perf_counter(), cpu_with_children_s()
     from ..runtime.job import run_job
 
     cfg = config_from_dict({"sequence": seq_dir, "output": out, "progress": False,
@@ -495,7 +503,7 @@ def _rerun_job(seq_dir: str, out: str, on: bool) -> dict:
     rep = run_job(cfg)
     wall = time.perf_counter() - t0
     row = {"frames": rep.result.n_frames, "wall_s": wall, "pipeline_s": rep.result.wall_s,
-           "cpu_s": _cpu_with_children_s() - cpu0,  # with the back-end process of the pipelined run
+           "cpu_s": cpu_with_children_s() - cpu0,  # with the back-end process of the pipelined run
            "image_every": cfg.viz.image_every, "jpeg_quality": cfg.viz.jpeg_quality}
     rrd = Path(out) / "recording.rrd"
     if on:
@@ -518,9 +526,9 @@ def _mode_job(seq_dir: str, out: str, mode: str, rerun: str) -> dict:
     cfg = config_from_dict({"sequence": seq_dir, "output": out, "progress": False, "run_mode": mode,
                             "viz": {"rerun": rerun}})
     # CPU of every thread of this process and of its (joined) back-end worker, over the whole job.
-    cpu0, t0 = _cpu_with_children_s(), time.perf_counter()
+    cpu0, t0 = cpu_with_children_s(), time.perf_counter()
     rep = run_job(cfg)
-    job_wall, job_cpu = time.perf_counter() - t0, _cpu_with_children_s() - cpu0
+    job_wall, job_cpu = time.perf_counter() - t0, cpu_with_children_s() - cpu0
     r = rep.result
     return {"mode": mode, "rerun": rerun, "frames": r.n_frames, "keyframes": r.n_keyframes, "fps": r.fps,
             "job_cpu_s": job_cpu, "job_wall_s": job_wall, "cores_busy": job_cpu / job_wall,
@@ -594,7 +602,7 @@ def _run_bag_peak_rss(bag: str, out: str) -> dict:
                             "viz": {"rerun": "off"}})
     rep = run_job(cfg)
     return {"frames": rep.result.n_frames, "keyframes": rep.result.n_keyframes, "fps": rep.result.fps,
-            "peak_rss_mb": _peak_rss_mb()}
+            "peak_rss_mb": peak_rss_mb()}
 
 
 def bench_bag(cache: Path, out_root: Path, factor: int = 10, storage: str = "mcap") -> dict:

@@ -147,7 +147,7 @@ def case_config(case: ScaleCase, cache: Path, out: Path, way: str) -> dict:
 
     data: dict[str, Any] = {"progress": False, "viz": {"rerun": "off"}, "run_mode": "sequential",
                             "output": str(out / case.name / way)}
-    if case.scene == "kitti":
+    if case.kitti_path is not None:
         data.update(sequence=str(case.kitti_path), dataset="kitti",
                     odometry_synthesis={"enabled": True, "scale_error": case.kitti_wheel_scale_error,
                                         "yaw_bias_per_m": KITTI_SCALE_SUITE_YAW_BIAS_PER_M})
@@ -193,7 +193,7 @@ def run_suite(cases: list[ScaleCase], cache: Path, out: Path, jobs: int) -> list
     from .executors import LocalExecutor, call_task
 
     for c in cases:
-        if c.scene != "kitti":
+        if c.kitti_path is None:
             ensure_rendered(c, cache)
     tasks = [call_task(c.name, run_scale_case, c, cache, out) for c in cases]
     by_name = {o.key: o for o in LocalExecutor(max(1, jobs)).run(tasks)}
