@@ -14,6 +14,7 @@ import yaml
 from conftest import make_config
 from rerun.chunk import RrdReader
 
+from windowvo.backend.report import ScaleReport
 from windowvo.errors import WindowVOError
 from windowvo.eval.metrics import evaluate
 from windowvo.io.sequence import Sequence
@@ -297,7 +298,7 @@ def test_skipped_frame_goes_to_the_text_log(short_loop, tmp_path):
     viewer = RerunLogger(cfg, seq)
     viewer.log_frame(None, FrameEstimate(3, float(seq.timestamps[3]), np.eye(4), skipped=True,
                                          note="skipped: black frame"))
-    viewer.finish(RunResult(1, 0, 1, 0.1, _empty_trajectory(), [], False))
+    viewer.finish(RunResult(1, 0, 1, 0.1, _empty_trajectory(), [], False, ScaleReport()))
     chunks = list(RrdReader(str(tmp_path / "out" / "recording.rrd")).stream())
     texts = _rows(chunks, "/log", "TextLog:text")
     levels = _rows(chunks, "/log", "TextLog:level")
