@@ -180,6 +180,7 @@ def test_spawned_viewer_that_dies_is_reaped(sequence, tmp_path, subreaper):
     _assert_survived(r, "viz.rerun=spawn", "viewer exited", "saved to", recorded=True)
 
 
+@pytest.fixture
 def small_disk(tmp_path):
     """A 256 KiB tmpfs (root only; skipped otherwise)."""
     mnt = tmp_path / "small"
