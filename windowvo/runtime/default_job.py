@@ -11,6 +11,7 @@ from pathlib import Path
 from ..config import Config, ConfigError, apply_overrides, config_from_dict
 from ..errors import WindowVOError
 from .outfolder import check_writable_names, move_aside, previous_run_files, remove_previous
+from .progress import Progress
 
 log = logging.getLogger("windowvo")
 
@@ -30,8 +31,12 @@ def default_config(overrides: list[str], root: Path | None = None) -> Config:
     if not marker.is_file() or json.loads(marker.read_text()).get("seed") != spec.seed or not (
         seq_dir / "odometry.csv"
     ).is_file():
-        log.info("rendering the default synthetic sequence into %s (once)", seq_dir)
-        generate_sequence(seq_dir, spec)
+        log.info("rendering the default synthetic sequence into %s (once, about a minute)", seq_dir)
+        bar = Progress(round(spec.duration_s * spec.fps) + 1, "frames rendered")
+        try:
+            generate_sequence(seq_dir, spec, progress=lambda n, total: bar.update(n))
+        finally:
+            bar.close()
     data = {"sequence": str(seq_dir.resolve()), "output": str((root / "default").resolve())}
     data = apply_overrides(data, overrides)
     return config_from_dict(data, base_dir=Path.cwd())

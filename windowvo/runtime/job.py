@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +22,7 @@ from .outfolder import OutputLock, check_writable_names
 from .outputs import summary_dict, summary_lines, write_outputs, write_summary
 from .parallel import BackendWorker
 from .pipeline import Pipeline, RunResult
+from .progress import Progress
 
 log = logging.getLogger("windowvo")
 
@@ -146,16 +146,13 @@ def evaluate_report(report: JobReport) -> JobReport:
 
 
 def _progress_bar(cfg: Config, total: int):
-    if not cfg.progress or not sys.stderr.isatty():
+    """The run's progress (a bar on a terminal, a line every 10% elsewhere) and its per-frame callback."""
+    if not cfg.progress:
         return None, None
-    from tqdm import tqdm
-
-    bar = tqdm(total=total, unit="frame", dynamic_ncols=True, file=sys.stderr)
+    bar = Progress(total or None, "frames")
 
     def update(n_frames: int, n_kf: int) -> None:
-        bar.n = n_frames
-        bar.set_postfix(keyframes=n_kf, refresh=False)
-        bar.refresh() if n_frames % 10 == 0 else None
+        bar.update(n_frames, keyframes=n_kf)
 
     return bar, update
 

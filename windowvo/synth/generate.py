@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import enum
 import json
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -372,8 +373,9 @@ def _frame_image(renderer: Renderer, spec: SynthSpec, i: int, t: float, T_wb: np
 
 
 def _write_images(folder: Path, world: SyntheticWorld, frames: list[tuple[int, float, np.ndarray]],
-                  progress: bool) -> None:
-    """Render and write the kept frames ``(index, time, T_world_base)``, with the spec's faults."""
+                  progress: bool | Callable[[int, int], None]) -> None:
+    """Render and write the kept frames ``(index, time, T_world_base)``, with the spec's faults; ``progress``:
+    True prints a line every 50 frames, a callable gets (frames written, frames in all) after each."""
     spec = world.spec
     renderer = Renderer(world.scene, world.camera, seed=spec.seed)
     rng = np.random.default_rng(spec.seed + 1)
@@ -390,7 +392,9 @@ def _write_images(folder: Path, world: SyntheticWorld, frames: list[tuple[int, f
         img8 = _frame_image(renderer, spec, i, t, T_wb, rng, hidden)
         cv2.imwrite(str(name), img8, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         last_img = img8
-        if progress and k % 50 == 0:
+        if callable(progress):
+            progress(k + 1, len(frames))
+        elif progress and k % 50 == 0:
             print(f"rendered {k}/{len(frames)}", flush=True)
 
 
@@ -410,7 +414,7 @@ def _write_tables(out: Path, world: SyntheticWorld, times: np.ndarray, gt_poses:
     (out / "synth.json").write_text(json.dumps(meta, indent=1, default=str))
 
 
-def generate_sequence(out: Path, spec: SynthSpec, progress: bool = False) -> SyntheticWorld:
+def generate_sequence(out: Path, spec: SynthSpec, progress: bool | Callable[[int, int], None] = False) -> SyntheticWorld:
     """Write the native sequence of ``spec`` into ``out`` (images/, times.txt, camera.yaml, odometry.csv,
     groundtruth.txt, synth.json)."""
     out = Path(out)
