@@ -203,10 +203,10 @@ class Pipeline:
         """Every frame through the front end (and the back end, or the worker), then the back end drained."""
         n_total = len(self.provider)
         with stop.abortable():
-            for item in self.provider:
+            for n_read, item in enumerate(self.provider, 1):
                 self._step(item, item.index == n_total - 1)
-                if self.progress is not None:
-                    self.progress(len(self.frames), len(self.kf_frames))
+                if self.progress is not None:  # frames through the front end (pipelined: some still wait)
+                    self.progress(n_read, len(self.kf_frames))
                 if stop.requested() is not None:
                     break
         n_signals = stop.count()
