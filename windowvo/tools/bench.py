@@ -32,7 +32,6 @@ from __future__ import annotations
 import enum
 import os
 import resource
-import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -372,18 +371,10 @@ def sequences_table(rows: list[dict]) -> str:
 def run_cases_in_processes(cases: list[SeqCase], cache: Path, out: Path, jobs: int,
                            overrides: tuple[str, ...] = ()) -> list[dict]:
     """Each case in a fresh interpreter (``jobs`` at once, windowvo.executors); failures are reported and dropped."""
-    from .executors import LocalExecutor, call_task
+    from .executors import values_in_processes
 
-    tasks = [call_task(c.name, run_case, c, cache, out, False, tuple(overrides)) for c in cases]
-    by_name = {o.key: o for o in LocalExecutor(max(1, jobs)).run(tasks)}
-    rows = []
-    for c in cases:
-        o = by_name[c.name]
-        if o.ok:
-            rows.append(o.value)
-        else:
-            print(f"bench: {c.name} failed: {o.reason}", file=sys.stderr)
-    return rows
+    return values_in_processes([(c.name, run_case, (c, cache, out, False, tuple(overrides))) for c in cases], jobs,
+                               "bench")
 
 
 # ---------------------------------------------------------------------------- component suites

@@ -326,6 +326,21 @@ def make_executor(kind: ExecutorKind, jobs: int = 1, address: str | None = None)
     return LocalExecutor(jobs)
 
 
+def values_in_processes(calls: list[tuple[str, Callable[..., Any], tuple]], jobs: int, label: str) -> list[Any]:
+    """``(key, fn, args)`` calls, each in a fresh interpreter, ``jobs`` at once; the values of those that succeed,
+    in order (a failure is one line on stderr, ``label: key failed: reason``, and is dropped)."""
+    tasks = [call_task(key, fn, *args) for key, fn, args in calls]
+    by_key = {o.key: o for o in LocalExecutor(max(1, jobs)).run(tasks)}
+    values = []
+    for key, _, _ in calls:
+        o = by_key[key]
+        if o.ok:
+            values.append(o.value)
+        else:
+            print(f"{label}: {key} failed: {o.reason}", file=sys.stderr)
+    return values
+
+
 def _call_main(result_path: str) -> int:
     """Worker side of :func:`call_task`: read the pickled call on stdin, pickle its return value."""
     payload = pickle.loads(sys.stdin.buffer.read())

@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -190,21 +189,12 @@ def run_scale_case(case: ScaleCase, cache: Path, out: Path) -> dict:
 
 def run_suite(cases: list[ScaleCase], cache: Path, out: Path, jobs: int) -> list[dict]:
     """Render every case first (in this process), then each case in a fresh interpreter, ``jobs`` at once."""
-    from .executors import LocalExecutor, call_task
+    from .executors import values_in_processes
 
     for c in cases:
         if c.kitti_path is None:
             ensure_rendered(c, cache)
-    tasks = [call_task(c.name, run_scale_case, c, cache, out) for c in cases]
-    by_name = {o.key: o for o in LocalExecutor(max(1, jobs)).run(tasks)}
-    rows = []
-    for c in cases:
-        o = by_name[c.name]
-        if o.ok:
-            rows.append(o.value)
-        else:
-            print(f"scale suite: {c.name} failed: {o.reason}", file=sys.stderr)
-    return rows
+    return values_in_processes([(c.name, run_scale_case, (c, cache, out)) for c in cases], jobs, "scale suite")
 
 
 def _gmean(values: list[float]) -> float:
