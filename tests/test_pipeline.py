@@ -84,6 +84,7 @@ def _with_dropped_frames(src: Path, dst: Path, drop: range) -> int:
     return len(keep)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_interruption_keeps_results(seq_factory, tmp_path, sig):
     """Signal a run in its frame loop: exit 130, no traceback, every processed frame written.

@@ -43,6 +43,9 @@ NOT_RUN = {
     "python -m windowvo.batch batch.yaml --executor ray --address ray://head:10001":
         "needs a Ray cluster at that address (tests/test_batch.py runs the Ray executor locally)",
 }
+# Docs the README links to that other issue-#28 work writes on its own branch: absent here until merged.
+# Each must really be absent (so an entry cannot outlive its merge); delete it once the file lands.
+PENDING_DOCS = {"docs/recording.md", "docs/robustness.md"}
 LANGUAGES = {"bash": "run", "python": "run", "yaml": "parsed", "text": "shown"}
 TIMEOUT_S = 600  # per block; generous because the machine's two cores are shared
 HEADING = re.compile(r"^(#{2,3}) (.+)$")
@@ -171,6 +174,9 @@ def test_length_and_local_links():
         if "://" in path:
             continue
         target = REPO / path if path else README
+        if path in PENDING_DOCS:
+            assert not target.exists(), f"{path} has landed: remove it from PENDING_DOCS"
+            continue
         assert target.exists(), f"README links to a missing file: {path}"
         if anchor and target.suffix == ".md":
             assert anchor in markdown_anchors(target.read_text()), f"no heading for #{anchor} in {path}"
