@@ -1,7 +1,11 @@
-"""Shared fixtures: rendered synthetic sequences are made once per test session (per worker)."""
+"""Shared fixtures: rendered synthetic sequences are made once per test run, shared by the xdist workers."""
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
+import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -13,16 +17,43 @@ from windowvo.synth.paths import PathKind
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
+def _shared_root(tmp_path_factory) -> Path:
+    """A folder every pytest-xdist worker of this run sees (the workers' base temp folders' parent),
+    so that two workers needing the same sequence render it once; without xdist, the session's own."""
+    base = tmp_path_factory.getbasetemp()
+    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "rendered_sequences"
+    root.mkdir(parents=True, exist_ok=True)
+    return root
+
+
+def _render_once(root: Path, name: str, spec: SynthSpec) -> Path:
+    """Render ``spec`` into ``root/name-<hash of the spec>`` unless a worker already did (a file lock
+    serialises the workers; the folder appears only when complete)."""
+    key = hashlib.sha1(repr(spec).encode()).hexdigest()[:12]
+    out = root / f"{name}-{key}"
+    with open(root / f"{name}-{key}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not out.is_dir():
+            part = root / f"{name}-{key}.partial"
+            shutil.rmtree(part, ignore_errors=True)
+            generate_sequence(part, spec)
+            part.rename(out)
+    return out
+
+
 @pytest.fixture(scope="session")
 def seq_factory(tmp_path_factory):
+    """``make(name, **SynthSpec fields)``: a rendered sequence, rendered once per test run (shared by
+    tests and xdist workers; keyed by the whole spec, so two specs under one name never mix)."""
+    root = _shared_root(tmp_path_factory)
     cache: dict[str, Path] = {}
 
     def make(name: str, **kw) -> Path:
-        if name not in cache:
-            out = tmp_path_factory.mktemp(name)
-            generate_sequence(out, SynthSpec(**kw))
-            cache[name] = out
-        return cache[name]
+        spec = SynthSpec(**kw)
+        ident = f"{name}:{spec!r}"
+        if ident not in cache:
+            cache[ident] = _render_once(root, name, spec)
+        return cache[ident]
 
     return make
 

@@ -167,6 +167,7 @@ def test_second_invocation_reuses_finished_runs(local_batch):
     _assert_same_table(_table(first), _table(again))
 
 
+@pytest.mark.slow  # its fixture runs the local batch
 def test_changed_config_is_not_reused(local_batch, batch_dir):
     """Planning only: a run folder with another config's summary does not count as finished."""
     _, result = local_batch

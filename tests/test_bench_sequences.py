@@ -30,6 +30,7 @@ def _wheel_over_true_distance(seq) -> float:
     return odo.distance(float(gt.timestamps[0]), float(gt.timestamps[-1])) / _path_length(gt.positions)
 
 
+@pytest.mark.slow
 def test_bench_case_with_and_without_ground_cue(tmp_path):
     case = next(c for c in bench.synthetic_cases(5.0) if c.name == "loop_wheels-3pct")
     cache, out = tmp_path / "cache", tmp_path / "out"

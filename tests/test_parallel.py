@@ -17,7 +17,8 @@ from windowvo.runtime.parallel import BackendWorker
 from windowvo.synth.paths import PathKind
 
 
-@pytest.mark.parametrize("case", ["level", "rocking_tilted_mount", "tilted_mount_auto", "monocular_floor_late"])
+@pytest.mark.parametrize("case", ["level", *(pytest.param(c, marks=pytest.mark.slow) for c in
+                                             ("rocking_tilted_mount", "tilted_mount_auto", "monocular_floor_late"))])
 def test_pipelined_equals_sequential(short_loop, seq_factory, tmp_path, case):
     """Also on a rocking base whose camera.yaml is 0.5 deg off, with the mount calibration on: the level
     frame's Python factor and the learnt floor normal are built in the worker process; and on a loop whose

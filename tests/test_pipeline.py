@@ -38,6 +38,7 @@ def test_vo_beats_wheel_odometry(seq_factory, tmp_path, name):
     assert (tmp_path / "out" / "config_resolved.yaml").is_file()
 
 
+@pytest.mark.slow
 def test_planar_prior_does_not_bend_the_ramp(seq_factory, tmp_path):
     seq = seq_factory("ramp", **CASES["ramp"])
     on = run_job(make_config(seq, tmp_path / "on", max_frames=300))
@@ -83,6 +84,7 @@ def _with_dropped_frames(src: Path, dst: Path, drop: range) -> int:
     return len(keep)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_interruption_keeps_results(seq_factory, tmp_path, sig):
     """Signal a run in its frame loop: exit 130, no traceback, every processed frame written.
@@ -136,6 +138,7 @@ def test_interruption_keeps_results(seq_factory, tmp_path, sig):
     assert images == len(traj)
 
 
+@pytest.mark.slow
 def test_default_run_from_the_command_line(tmp_path):
     """The README's main command, in a fresh folder (renders the embedded default sequence)."""
     r = subprocess.run([sys.executable, "-m", "windowvo.run", "--no-progress", "viz.rerun=off"], cwd=tmp_path,

@@ -12,6 +12,8 @@ from windowvo.synth.generate import WheelErrorModel
 from windowvo.synth.paths import PathKind
 
 BASE = dict(path=PathKind.LOOP, duration_s=25.0, seed=51)
+pytestmark = pytest.mark.slow  # every test here is an end-to-end run of 20-30 s of rendered motion
+
 CASES = {
     "static": BASE,
     "moving": dict(BASE, n_moving=3),

@@ -73,6 +73,7 @@ def test_streaming_api_rejects_bad_frames(short_loop):
         vo.add_wheel_odometry(1.5, 0, 0, 0)
 
 
+@pytest.mark.slow
 def test_sigkill_leaves_the_causal_trajectory_up_to_the_last_keyframe(seq_factory, tmp_path):
     from windowvo.synth.paths import PathKind
 

@@ -24,7 +24,7 @@ from ..errors import ConfigError
 
 START = "<!-- config-reference:start -->"
 END = "<!-- config-reference:end -->"
-REGENERATE = "python -m windowvo.config_doc --write README.md"
+REGENERATE = "python -m windowvo.config_doc --write docs/config.md"
 
 
 @dataclass(frozen=True)
