@@ -160,6 +160,7 @@ def test_bench_peak_rss_is_the_worker_own():
     assert 5.0 < peak < 150.0
 
 
+@pytest.mark.slow
 def test_bench_overrides_reach_every_run_and_bad_ones_stop_early(tmp_path, capsys):
     case = next(c for c in bench.synthetic_cases(5.0) if c.name == "loop")
     data = bench.case_config_data(case, tmp_path / "cache", tmp_path / "out",

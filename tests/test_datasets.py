@@ -252,6 +252,7 @@ def test_odometry_synthesis_is_labelled(tmp_path, short_loop):
 KITTI = ["kitti06_000-050", "kitti01_000-050"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", KITTI)
 def test_kitti_with_synthetic_wheels(tmp_path, name):
     root = SHARED_DATA / name
