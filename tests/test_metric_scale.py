@@ -147,7 +147,7 @@ KERBS = dict(path=PathKind.LOOP, duration_s=25.0, seed=36, floor_contrast=0.3, k
 @pytest.mark.parametrize("case", ["ramp", "featureless_floor", "slip", "kerbs"])
 def test_no_worse_where_the_floor_assumption_breaks(seq_factory, tmp_path, case):
     """``kerbs``: textured platforms 3 cm high (6.7% of the camera height) line the path and the floor is poorly
-    textured, so many floor candidates lie on the platforms (KITTI's raised pavements, README); wheels +2%."""
+    textured, so many floor candidates lie on the platforms (KITTI's raised pavements, docs/performance.md); wheels +2%."""
     kw = {"ramp": dict(path=PathKind.RAMP, duration_s=25.0, seed=35),
           "featureless_floor": dict(path=PathKind.LOOP, duration_s=25.0, seed=36, floor_contrast=0.0),
           "kerbs": KERBS,

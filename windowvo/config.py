@@ -425,7 +425,7 @@ class Config(_Section):
                                        "file")
     output: Path = Field(description="output folder, created if missing; relative to the config file")
     dataset: DatasetKind = Field(DatasetKind.NATIVE, description="input layout: native, or a loader for another layout "
-                                                                 "(see Other dataset layouts)")
+                                                                 "(see docs/datasets.md)")
     fps: float = Field(20.0, gt=0, description="frame rate when the sequence has no timestamps (no times.txt, folder "
                                                "layout)")
     max_frames: int | None = Field(None, gt=1, description="stop after this many frames (none: all)")

@@ -204,7 +204,7 @@ class FloorModel:
         (``retie_window_floor``), and since the scale they gave also went into the wheel calibration,
         which its slow random walk would carry for tens of metres, the calibration's scale is released
         once (its next state joins with a random walk as wide as its prior). Measured on loops whose
-        camera.yaml is 0.5 / 1 / -1 deg off: 0.13-0.26 m -> 0.010-0.021 m (README, mount study)."""
+        camera.yaml is 0.5 / 1 / -1 deg off: 0.13-0.26 m -> 0.010-0.021 m (docs/performance.md, mount study)."""
         if (self.cfg.ground.mount_calibration is not MountCalibration.AUTO or self.mount_normal_used
                 or not self.floor_attitude.significant()):
             return False
@@ -220,7 +220,7 @@ class FloorModel:
         """The floor's normal (world) to measure keyframe k's floor points along when the base rocks,
         else None (the native factor in the keyframe's own base frame); ``w0`` is the window's start.
 
-        Measured on 20 rendered sequences rocking by 0.7-2 deg (README, Performance): ATE 0.42x-1.71x of
+        Measured on 20 rendered sequences rocking by 0.7-2 deg (docs/performance.md): ATE 0.42x-1.71x of
         the native factor's, geometric mean 0.87x; wheel scale 0.02-0.59% off (mean 0.22%) instead of
         0.02-0.82% (mean 0.32%). Level runs and the ramp never reach ``ground.rocking_jitter_deg``, so
         they keep the native factor, which also holds each keyframe's attitude to the floor (the level
@@ -276,7 +276,7 @@ class FloorModel:
         floor of the keyframe that tied them, in the new estimate, strays from the others' (``ground.off_floor``).
 
         Only native ground factors (``lm.ground_factor``); the level frame's, on a rocking base, are left alone.
-        Measured (README, Performance): a loop lined with 3 cm kerbs, wheels +2%: ATE SE(3) 0.041 -> 0.017 m
+        Measured (docs/performance.md): a loop lined with 3 cm kerbs, wheels +2%: ATE SE(3) 0.041 -> 0.017 m
         (without wheels 0.097 -> 0.023 m); 19 plain loops and figure eights 0.94x-1.31x, geometric mean 1.04."""
         k_sigma = self.cfg.ground.untie_sigmas
         if k_sigma is None:

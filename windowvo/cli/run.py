@@ -28,8 +28,7 @@ examples:
   python -m windowvo.run configs/example.yaml frontend.max_features=300 viz.rerun=off
 
 A config needs only sequence: (a native sequence folder) and output:; relative
-paths are resolved against the config file. Every other key has a default; see the README's
-config reference. Outputs: trajectory.txt (TUM, one line per frame), stats.csv,
+paths are resolved against the config file. Every other key has a default; see docs/config.md. Outputs: trajectory.txt (TUM, one line per frame), stats.csv,
 config_resolved.yaml, summary.json and recording.rrd (when viz.rerun=save).
 Each run holds OUT/.windowvo.lock; a folder holding an earlier run's files is refused
 unless --force (they are moved to OUT/previous-<time>/); the embedded default replaces its

@@ -94,7 +94,7 @@ def synthetic_cases(duration: float) -> list[SeqCase]:
                                                   wheel=WheelErrorModel(scale_error=0.02))),
         SeqCase("loop_wheels-3pct", CaseKind.SYNTH, dict(path=PathKind.LOOP, duration_s=duration, seed=37,
                                                   wheel=WheelErrorModel(scale_error=-0.03))),
-        # A rocking base with a large wheel error: the online calibration's known weak spot (README).
+        # A rocking base with a large wheel error: the online calibration's known weak spot (docs/performance.md).
         SeqCase("figure_eight_vibration_wheels-3pct", CaseKind.SYNTH,
                 dict(path=PathKind.FIGURE_EIGHT, duration_s=duration, seed=62, vibration_deg=1.0,
                      wheel=WheelErrorModel(scale_error=-0.03))),

@@ -1,8 +1,8 @@
-"""The README's config reference, generated from the config models so that it cannot drift.
+"""The config reference (docs/config.md), generated from the config models so that it cannot drift.
 
 ``python -m windowvo.config_doc`` prints the reference (a markdown table of every key: type,
-default, meaning); ``--write README.md`` replaces the text between the markers
-``<!-- config-reference:start -->`` and ``<!-- config-reference:end -->``; ``--check README.md``
+default, meaning); ``--write docs/config.md`` replaces the text between the markers
+``<!-- config-reference:start -->`` and ``<!-- config-reference:end -->``; ``--check docs/config.md``
 exits with 1 when that text is out of date. Every field of every section must carry a
 ``Field(..., description=...)``: the generator refuses to run without one.
 """
@@ -135,7 +135,7 @@ def generate_reference(model: type[BaseModel] = Config) -> str:
     return "\n".join(rows) + "\n"
 
 
-def replace_between_markers(text: str, body: str, where: str = "README") -> str:
+def replace_between_markers(text: str, body: str, where: str = "docs/config.md") -> str:
     if text.count(START) != 1 or text.count(END) != 1 or text.index(START) > text.index(END):
         raise ConfigError(f"{where}: needs one '{START}' line followed by one '{END}' line")
     head, rest = text.split(START, 1)
@@ -143,7 +143,7 @@ def replace_between_markers(text: str, body: str, where: str = "README") -> str:
     return f"{head}{START}\n{body}{END}{tail}"
 
 
-def reference_in(text: str, where: str = "README") -> str:
+def reference_in(text: str, where: str = "docs/config.md") -> str:
     """The text between the markers (without them)."""
     if text.count(START) != 1 or text.count(END) != 1 or text.index(START) > text.index(END):
         raise ConfigError(f"{where}: needs one '{START}' line followed by one '{END}' line")
