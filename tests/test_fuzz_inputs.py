@@ -91,3 +91,11 @@ def test_odometry_csv_fuzz(tmp_path, header, body):
     else:
         assert len(odo.timestamps) >= 2 and np.all(np.diff(odo.timestamps) > 0)
         assert np.all(np.isfinite(odo.x))
+
+
+def test_a_message_with_control_characters_stays_one_line():
+    """A user's key or file name can hold a newline: the message shows it escaped (found by the fuzz above)."""
+    from windowvo.errors import CalibrationError, ConfigError
+
+    assert str(CalibrationError("camera.yaml: unknown key '\n'")) == "camera.yaml: unknown key '\\n'"
+    assert "\n" not in str(ConfigError("a\tb\rc\x01d\ne")) and "\\x01" in str(ConfigError("\x01"))

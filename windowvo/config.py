@@ -507,7 +507,7 @@ def validation_problems(err: ValidationError) -> list[str]:
 def _format_validation_error(err: ValidationError) -> str:
     problems = validation_problems(err)
     head = "invalid config" if len(problems) == 1 else f"invalid config ({len(problems)} problems)"
-    return f"{head}: " + "; ".join(problems)
+    return f"{head}: " + "; ".join(problems)  # one line: WindowVOError escapes control characters
 
 
 def apply_overrides(data: dict, overrides: list[str]) -> dict:
