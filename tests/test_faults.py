@@ -130,8 +130,12 @@ def test_sigint_during_imports_or_loading_is_one_line_exit_130(seq, tmp_path, de
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=TIMEOUT)
     assert proc.returncode == 130, err
-    assert "Traceback" not in err and "interrupted by SIGINT" in err, err
-    assert not (out / "trajectory.txt").exists()
+    assert "Traceback" not in err, err
+    if "interrupted after frame" in err:  # a fast machine is in the frame loop 0.8 s in: what ran is written
+        assert delay_s > 0 and (out / "trajectory.txt").is_file(), err
+    else:  # before the first frame: one line, nothing written (loading alone: the next test)
+        assert "interrupted by SIGINT" in err, err
+        assert not (out / "trajectory.txt").exists()
 
 
 def test_sigint_while_loading_is_one_line_exit_130(seq, tmp_path):
