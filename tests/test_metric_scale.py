@@ -234,3 +234,26 @@ def test_floor_landmarks_on_kerbs_are_untied(seq_factory, tmp_path, use_odometry
           f"{on.result.floor_untied} untied), never untied {b.ate_se3_rmse_m:.4f} (Sim3 {b.ate_sim3_rmse_m:.4f})")
     assert on.result.floor_untied > 0 and off.result.floor_untied == 0
     assert a.ate_se3_rmse_m <= 0.5 * b.ate_se3_rmse_m, (a, b)
+
+
+def test_a_camera_height_ten_percent_off_is_found_and_the_wheels_carry_the_scale(seq_factory, tmp_path):
+    """The floor at a wrong height (10% high in the config) against wheels 3% short: the cue check finds them
+    disagreeing, says so, and the run stays within 1.2x of the wheels-only run (issue #26)."""
+    from windowvo.io.sequence import read_camera_yaml
+
+    seq = seq_factory("loop_minus3", path=PathKind.LOOP, duration_s=25.0, seed=32,
+                      wheel=WheelErrorModel(scale_error=-0.03))
+    true_height = float(read_camera_yaml(seq / "camera.yaml").T_base_cam[2, 3])
+    run_and_report(make_config(seq, tmp_path / "wrong", backend={"ground": {"camera_height_m": 1.1 * true_height}}))
+    summary = json.loads((tmp_path / "wrong" / "summary.json").read_text())
+    cues, wrong_ate = summary["cue_check"], summary["accuracy"]["ate_se3_rmse_m"]
+    print("wrong height:", wrong_ate, cues)
+    assert cues["agreeing_share"] < 0.2, cues
+    assert 0.05 <= cues["disagree_at_end"] <= 0.2, cues  # the floor says the world is ~10% larger
+    assert cues["disagree_since_frame"] is not None
+    wheels_only = _run(seq, tmp_path / "wheels", ground={"enabled": False}).accuracy
+    assert wrong_ate <= 1.2 * wheels_only.ate_se3_rmse_m, (wrong_ate, wheels_only)
+    # Without the gate the wrong floor sets the scale: the test can fail.
+    ungated = _run(seq, tmp_path / "ungated", ground={"camera_height_m": 1.1 * true_height},
+                   cue_check={"gate": False}).accuracy
+    assert ungated.ate_se3_rmse_m > 1.2 * wheels_only.ate_se3_rmse_m, (ungated, wheels_only)

@@ -171,6 +171,11 @@ class GroundConfig(_Section):
                                           "T_base_cam (base origin on the floor)")
     sigma_height_fraction: float = Field(0.03, gt=0, description="sigma of a floor point's height, as a share of the "
                                          "camera height")
+    sigma_common_fraction: float | None = Field(
+        0.015, gt=0, description="sigma of the error all floor points tied at one keyframe share (the floor's "
+        "height under the camera there: suspension, tyre compression, the local surface), as a share of the camera "
+        "height. A keyframe's n floor points then tell its height to sqrt(sigma_height^2 / n + this^2): the floor's "
+        "information does not grow with the number of points. null: independent points (n points: sigma / sqrt(n))")
     robust: RobustKind = Field(RobustKind.HUBER, description="robust loss of the ground factor")
     robust_k: float | None = Field(None, gt=0, description="its threshold in sigmas; default: chi-square quantile, 1-D")
     min_depression_deg: float = Field(8.0, ge=0, lt=90, description="floor candidates lie at least this far below "
@@ -230,6 +235,21 @@ class WheelCalibrationConfig(_Section):
     yaw_bias_walk_per_sqrt_m: float = Field(2e-4, gt=0, description="random walk of the yaw bias per sqrt(metre)")
 
 
+class CueCheckConfig(_Section):
+    """Floor against wheels: a chi-square test of the scale each implies, per keyframe (backend/cue_check.py)."""
+
+    enabled: bool = Field(True, description="test, at each keyframe with wheels and a floor plane, whether the scale "
+                          "the floor implies agrees with the wheels' (stats.csv cue_disagreement, cues_agree; the "
+                          "summary's share of agreeing keyframes)")
+    stretch_keyframes: int = Field(10, ge=1, le=500, description="the test compares distances and floor heights "
+                                   "over this many latest keyframes")
+    min_distance_m: float = Field(0.3, ge=0, description="... once the wheels drove at least this far over them")
+    confidence: float = Field(0.99, gt=0.5, lt=1, description="the cues agree while the test's chi-square is within "
+                              "its quantile at this confidence (1 degree of freedom)")
+    gate: bool = Field(True, description="while they disagree, new floor points are not tied to the floor (the "
+                       "wheels, whose scale error a tyre bounds, carry the scale); false: only report")
+
+
 class ResetPriorConfig(_Section):
     """Prior that holds the last good pose when the window restarts after a smoother failure."""
 
@@ -284,6 +304,8 @@ class BackendConfig(_Section):
                                                       "calibration (scale, yaw bias) as states in the window")
     reset_prior: ResetPriorConfig = Field(ResetPriorConfig(), description="prior on the last good pose when "
                                           "the window restarts after a failure")
+    cue_check: CueCheckConfig = Field(CueCheckConfig(), description="floor against wheels: whether the scale each "
+                                      "implies agrees, per keyframe; the floor gated off while they disagree")
 
 
 # Addresses ``viz.rerun: connect`` accepts: rerun[+http|+https]://HOST[:PORT]/proxy.

@@ -142,6 +142,10 @@ class BackendOutput:
     floor_tilt_y_deg: float = float("nan")
     floor_tilt_se_deg: float = float("nan")  # its standard error
     floor_normal_learnt: bool = False  # this keyframe's floor points were measured along the learnt normal
+    # Floor against wheels (backend/cue_check.py): the floor's scale over the wheels' less 1 over the latest
+    # keyframes (nan: not tested), and whether the chi-square test found them agreeing (None: not tested).
+    cue_disagreement: float = float("nan")
+    cues_agree: bool | None = None
     # Keyframes before the window whose poses this update changed (frame index -> T_world_base): every one at a
     # monocular run's late metric start, when the floor first came into view and the trajectory was rescaled.
     earlier_keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)
@@ -202,6 +206,8 @@ class FrameRecord:
     floor_tilt_y_deg: float = float("nan")
     floor_tilt_se_deg: float = float("nan")
     floor_normal_learnt: bool = False
+    cue_disagreement: float = float("nan")  # floor scale / wheel scale - 1 over the latest keyframes (nan: untested)
+    cues_agree: bool | None = None  # the chi-square test of floor against wheels (None: not tested)
 
 
 @dataclass

@@ -273,7 +273,7 @@ GROUND_AZIMUTH_SIGMA_RAD = 1.0  # the ground factor's azimuth: left to the proje
 
 
 def ground_factor(pose_key: int, landmark_key: int, p_base: np.ndarray, floor_z: float, sigma_m: float,
-                  cfg: BackendConfig, normal_base: np.ndarray | None = None):
+                  cfg: BackendConfig, normal_base: np.ndarray | None = None, outlier_sigma_m: float | None = None):
     """Ties a floor landmark to the ground plane of the keyframe that observes it.
 
     Seen from the base origin (on the floor), a floor point lies on the horizon of the base frame: its
@@ -290,6 +290,10 @@ def ground_factor(pose_key: int, landmark_key: int, p_base: np.ndarray, floor_z:
     pitched or rolled against ``T_base_cam``, see ``ground.FloorAttitude``); the floor is then the plane
     ``normal_base . q = floor_z`` and heights and elevations are measured along that normal. With the z
     axis the factor is the same bit for bit.
+
+    ``outlier_sigma_m``: the height sigma the robust loss's threshold is counted in (default ``sigma_m``).
+    A floor point whose ``sigma_m`` is widened by the error it shares with its keyframe's other floor points
+    (``FloorModel.point_sigma_m``) stays an outlier at the same height off the floor.
     """
     n = np.array([0.0, 0.0, 1.0]) if normal_base is None else np.asarray(normal_base, float) / np.linalg.norm(normal_base)
     p = np.asarray(p_base, float)
@@ -306,8 +310,15 @@ def ground_factor(pose_key: int, landmark_key: int, p_base: np.ndarray, floor_z:
     sigma_elev = sigma_m * s_e / float(np.linalg.norm(q))  # d(elevation)/d(height): r / |q|^2 with n = z
     info = np.outer(e, e) / sigma_elev**2 + np.outer(a, a) / GROUND_AZIMUTH_SIGMA_RAD**2
     g = cfg.ground
-    noise = robust(gtsam.noiseModel.Gaussian.Information(info), g.robust, threshold(g.robust_k, 1, cfg))
+    noise = robust(gtsam.noiseModel.Gaussian.Information(info), g.robust,
+                   threshold(g.robust_k, 1, cfg) * _outlier_share(sigma_m, outlier_sigma_m))
     return gtsam.BearingFactor3D(pose_key, landmark_key, measured, noise)
+
+
+def _outlier_share(sigma_m: float, outlier_sigma_m: float | None) -> float:
+    """The robust threshold's factor that keeps it at ``outlier_sigma_m`` sigmas in metres for a factor of sigma
+    ``sigma_m`` (1 when they are the same)."""
+    return 1.0 if outlier_sigma_m is None else float(outlier_sigma_m) / float(sigma_m)
 
 
 def _level_height_error(up: np.ndarray, floor_z: float, this: gtsam.CustomFactor, values: gtsam.Values,
@@ -328,7 +339,7 @@ def _level_height_error(up: np.ndarray, floor_z: float, this: gtsam.CustomFactor
 
 
 def level_ground_factor(pose_key: int, landmark_key: int, up_world: np.ndarray, floor_z: float, sigma_m: float,
-                        cfg: BackendConfig):
+                        cfg: BackendConfig, outlier_sigma_m: float | None = None):
     """Ties a floor landmark to the floor under a rocking base: its height above the base origin,
     measured along the floor's normal ``up_world`` (world frame, fixed when the factor is made), is
     ``floor_z``.
@@ -344,5 +355,6 @@ def level_ground_factor(pose_key: int, landmark_key: int, up_world: np.ndarray, 
     up = np.asarray(up_world, float)
     up = up / np.linalg.norm(up)
     g = cfg.ground
-    noise = robust(gtsam.noiseModel.Isotropic.Sigma(1, sigma_m), g.robust, threshold(g.robust_k, 1, cfg))
+    noise = robust(gtsam.noiseModel.Isotropic.Sigma(1, sigma_m), g.robust,
+                   threshold(g.robust_k, 1, cfg) * _outlier_share(sigma_m, outlier_sigma_m))
     return gtsam.CustomFactor(noise, [pose_key, landmark_key], partial(_level_height_error, up, float(floor_z)))

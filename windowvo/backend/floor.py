@@ -16,6 +16,7 @@ smoother: it adds factors to the update the smoother builds and returns factor i
 from __future__ import annotations
 
 import logging
+from collections import Counter
 
 import numpy as np
 
@@ -24,6 +25,7 @@ from ..config import BackendConfig, MountCalibration
 from ..geometry import inv_T, make_T
 from ..types import FrontendOutput
 from . import factors as fac
+from .cue_check import CueAgreement, CueCheck
 from .factors import X
 from .ground import (
     UNTIE_MIN_SIGMA_HEIGHTS,
@@ -74,7 +76,10 @@ class FloorModel:
         if g.enabled and not self.use_ground:
             log.warning("ground cue off: camera height %.3f m above the floor is too small (T_base_cam z, "
                         "or backend.ground.camera_height_m)", self.camera_height_m)
-        self.ground_sigma_m = g.sigma_height_fraction * self.camera_height_m
+        self.ground_sigma_m = g.sigma_height_fraction * self.camera_height_m  # one floor point's own error
+        # The error a keyframe's floor points share (its floor's height under the camera), None: independent.
+        self.common_sigma_m = (None if g.sigma_common_fraction is None
+                               else g.sigma_common_fraction * self.camera_height_m)
         self._rng = np.random.default_rng(g.seed)
         # The floor's attitude in the base frame is always learnt (the summary reports it: a tilted mount
         # shows there); with ground.mount_calibration it is also used.
@@ -99,6 +104,13 @@ class FloorModel:
         self.base_rocking_deg = float("nan")  # attitude_jitter_deg over the window at the last floor fit
         self.level_frame = False  # the last update measured its floor points in the level frame
         self.n_ground_keyframes = 0
+        # Floor against wheels (``check_cues``): this update's floor plane height (in the estimate) and the test.
+        self.fit_height_m: float | None = None
+        wc = cfg.wheel_calibration
+        self.cues = (CueCheck(cfg.cue_check, self.camera_height_m, wc.scale_prior_sigma,
+                              g.sigma_common_fraction or g.sigma_height_fraction)
+                     if use_odometry and self.use_ground and cfg.cue_check.enabled else None)
+        self.last_agreement: CueAgreement | None = None
 
     # ------------------------------------------------------------------ state
     def ground_active(self) -> bool:
@@ -109,8 +121,31 @@ class FloorModel:
         return self.use_ground and not self.metric
 
     def begin_update(self) -> None:
-        """A new update: nothing measured in the level frame or along the learnt normal yet."""
+        """A new update: nothing measured in the level frame or along the learnt normal yet, no floor plane."""
         self.level_frame = self.floor_normal_learnt = False
+        self.fit_height_m = None
+        self.last_agreement = None
+
+    def ties_allowed(self) -> bool:
+        """New floor points are tied to the floor: it has a metric height, and the cues do not disagree
+        (``CueCheck.floor_gated``)."""
+        return not self.waiting_for_floor() and not (self.cues is not None and self.cues.floor_gated())
+
+    def check_cues(self, k: int, wheel_m: float | None, estimate_m: float) -> None:
+        """Keyframe k's test of floor against wheels (``cue_check.py``), after its update; says when a
+        disagreement starts and ends."""
+        if self.cues is None or not self.ground_active():
+            return
+        was_gated = self.cues.floor_gated()
+        self.last_agreement = a = self.cues.observe(k, wheel_m, estimate_m, self.fit_height_m)
+        if a is None:
+            return
+        if not a.agree and self.cues.disagree_since == k:
+            log.warning("keyframe %d: floor and wheels disagree on the scale by %+.1f%% (chi-square %.1f > %.1f)%s",
+                        k, 100.0 * a.disagreement, a.chi2, self.cues.threshold,
+                        ": floor points are not tied to the floor while they do" if self.cfg.cue_check.gate else "")
+        elif was_gated and a.agree:
+            log.info("keyframe %d: floor and wheels agree again (%+.1f%%)", k, 100.0 * a.disagreement)
 
     def count_ground_factors(self, n_ground: int) -> None:
         """An update's ground factors went into the smoother."""
@@ -167,6 +202,7 @@ class FloorModel:
             self._drift_height = None
         fa = self.floor_attitude
         if fit is not None:
+            self.fit_height_m = fit.camera_height_m
             fa.add(fit.normal)
             if self.cfg.ground.mount_calibration is MountCalibration.ON and not fa.ready:
                 # Still learning the floor's attitude on the mount: floor points tied to a floor the mount
@@ -239,18 +275,35 @@ class FloorModel:
         return level_up(floor_normals, T_guess[:3, :3] @ fit.normal, g.level_select_deg)
 
     # ------------------------------------------------------------------ ground factors
+    def point_sigma_m(self, n_points: int) -> float:
+        """The height sigma of each of the ``n_points`` floor points one keyframe ties to its floor.
+
+        A point's height off the floor has its own error (triangulation, ``sigma_height_fraction``) and one
+        that all of the keyframe's floor points share (``sigma_common_fraction``: the floor's height under the
+        camera there varies with the suspension, the tyres, the local surface). Their mean then knows the
+        height to ``sqrt(s_own^2 / n + s_common^2)``, never better than ``s_common``; the same information
+        spread evenly over the n factors gives each ``sqrt(s_own^2 + n s_common^2)``. Independent factors of
+        sigma ``s_own`` would claim ``s_own / sqrt(n)``: 100 points a height known to 0.3% of itself, which
+        a road's kerbs and grass a few centimetres above the asphalt do not allow."""
+        if self.common_sigma_m is None:
+            return self.ground_sigma_m
+        return float(np.sqrt(self.ground_sigma_m**2 + max(n_points, 1) * self.common_sigma_m**2))
+
     def birth_ground_factor(self, k: int, key: int, p_world: np.ndarray, T_guess: np.ndarray,
-                            up_world: np.ndarray | None, n_base: np.ndarray | None):
+                            up_world: np.ndarray | None, n_base: np.ndarray | None, n_points: int = 1):
         """A new floor landmark's ground factor at its birth keyframe k: along the base's z axis (or the
-        learnt floor normal ``n_base``) natively, or along the level frame's up when the base rocks."""
+        learnt floor normal ``n_base``) natively, or along the level frame's up when the base rocks;
+        ``n_points``: the floor points keyframe k ties (``point_sigma_m``)."""
         cfg = self.cfg
         self.floor_normal_learnt = n_base is not None
+        sigma = self.point_sigma_m(n_points)
         if up_world is not None:
             self.n_level_ground_factors += 1
             self.level_frame = True
-            return fac.level_ground_factor(X(k), key, up_world, self.floor_z, self.ground_sigma_m, cfg)
+            return fac.level_ground_factor(X(k), key, up_world, self.floor_z, sigma, cfg, self.ground_sigma_m)
         p_base = (p_world - T_guess[:3, 3]) @ T_guess[:3, :3]
-        return fac.ground_factor(X(k), key, p_base, self.floor_offset(n_base), self.ground_sigma_m, cfg, n_base)
+        return fac.ground_factor(X(k), key, p_base, self.floor_offset(n_base), sigma, cfg, n_base,
+                                 self.ground_sigma_m)
 
     def retie_window_floor(self, k: int, w0: int, graph, owners: list) -> list[int]:
         """Tie the window's floor landmarks to the floor along the learnt normal instead of the base z axis
@@ -260,11 +313,14 @@ class FloorModel:
         n_base = self.floor_normal_base()
         offset = self.floor_offset(n_base)
         removed = []
-        for tid, kk, fi, p_world in self.lm.tied_to_floor(w0):
+        tied = self.lm.tied_to_floor(w0)
+        per_keyframe = Counter(kk for _, kk, _, _ in tied)
+        for tid, kk, fi, p_world in tied:
             T = self.kf_pose[kk]
             p_base = (p_world - T[:3, 3]) @ T[:3, :3]
             key = self.lm.landmarks[tid].key
-            graph.add(fac.ground_factor(X(kk), key, p_base, offset, self.ground_sigma_m, self.cfg, n_base))
+            graph.add(fac.ground_factor(X(kk), key, p_base, offset, self.point_sigma_m(per_keyframe[kk]), self.cfg,
+                                        n_base, self.ground_sigma_m))
             owners.append((tid, kk, True))
             self.lm.drop_factor(tid, kk, fi)
             removed.append(fi)

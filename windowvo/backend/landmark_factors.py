@@ -83,6 +83,7 @@ class LandmarkFactors:
         cam_center = (T_guess @ self.T_base_cam)[:3, 3]
         new_lms: list[int] = []
         n_vis = n_ground = 0
+        n_floor = int(np.count_nonzero(on_floor))  # the floor points keyframe k ties (they share its floor's error)
         for (tid, p), floor in zip(born, on_floor):
             key = fac.G(tid) if floor else L(tid)
             values.insert(key, gtsam.Point3(p))
@@ -95,8 +96,8 @@ class LandmarkFactors:
                                                     self.body_P_sensor))
                     owners.append((tid, kk, False))
                     n_vis += 1
-            if floor and not floor_model.waiting_for_floor():
-                graph.add(floor_model.birth_ground_factor(k, key, p, T_guess, up_world, n_base))
+            if floor and floor_model.ties_allowed():
+                graph.add(floor_model.birth_ground_factor(k, key, p, T_guess, up_world, n_base, n_floor))
                 owners.append((tid, k, up_world is None))
                 n_ground += 1
             new_lms.append(tid)

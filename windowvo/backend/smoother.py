@@ -308,6 +308,9 @@ class SlidingWindowBackend:
         self.lm.record_factors(owners, idx)
         self.floor.count_ground_factors(n_ground)
         self._refresh_states()
+        if k > 0:
+            step = np.linalg.norm(self.kf_pose[k][:3, 3] - self.kf_pose[k - 1][:3, 3])
+            self.floor.check_cues(k, odom.distance_m if self._odometry_usable(odom) else None, float(step))
         self.lm.prune(w0)
         self.floor.untie_off_floor(w0)
         ids, p_world, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, k)
@@ -457,6 +460,8 @@ class SlidingWindowBackend:
             floor_tilt_y_deg=tilt[1],
             floor_tilt_se_deg=fa.standard_error_deg() if fa.ready else float("nan"),
             floor_normal_learnt=floor.floor_normal_learnt,
+            cue_disagreement=float("nan") if floor.last_agreement is None else floor.last_agreement.disagreement,
+            cues_agree=None if floor.last_agreement is None else floor.last_agreement.agree,
             wheel_scale=calib.scale if self.calibrate else float("nan"),
             wheel_yaw_bias_per_m=calib.yaw_bias_per_m if self.calibrate else float("nan"),
         )

@@ -71,6 +71,38 @@ def floor_summary(records: list[FrameRecord], T_base_cam: np.ndarray | None = No
                 round(float(v), 6) for v in levelled_mount(T_base_cam, normal_from_tilt_deg(*tilts[-1][:2])).ravel()]}
 
 
+def cue_summary(records: list[FrameRecord]) -> dict | None:
+    """Floor against wheels over the run (``backend/cue_check.py``): the keyframes tested, the share that agreed,
+    the median disagreement, and the disagreement the run ended in (its size and the frame it started at; None
+    when the cues agreed at the end). None: never tested (no wheels, or no floor)."""
+    tested = [rec for rec in records if rec.cues_agree is not None]
+    if not tested:
+        return None
+    since = None
+    for rec in reversed(tested):
+        if rec.cues_agree:
+            break
+        since = rec
+    return {"keyframes_tested": len(tested),
+            "agreeing_share": round(sum(bool(rec.cues_agree) for rec in tested) / len(tested), 4),
+            "disagreement_median": round(float(np.median([rec.cue_disagreement for rec in tested])), 5),
+            "disagree_at_end": None if since is None else round(tested[-1].cue_disagreement, 5),
+            "disagree_since_frame": None if since is None else since.frame_index}
+
+
+def _cue_line(summary: dict) -> str | None:
+    c = summary.get("cue_check")
+    if c is None:
+        return None
+    line = (f"floor against wheels: agree at {100 * c['agreeing_share']:.0f}% of {c['keyframes_tested']} keyframes "
+            f"(median {100 * c['disagreement_median']:+.1f}%)")
+    if c["disagree_at_end"] is not None:
+        line += (f"; they disagree by {100 * c['disagree_at_end']:+.1f}% since frame {c['disagree_since_frame']} "
+                 "(the floor's scale over the wheels': check backend.ground.camera_height_m / T_base_cam and the "
+                 "wheels' scale)")
+    return line
+
+
 def _clock_dict(c) -> dict | None:
     if c is None:
         return None
@@ -117,6 +149,7 @@ def summary_dict(report: JobReport, cfg: Config) -> dict:
         "odometry_synthetic": bool(report.sequence.odometry is not None and report.sequence.odometry.synthetic),
         "interrupted": r.interrupted,
         **floor_summary(r.records, report.sequence.camera.T_base_cam),
+        "cue_check": cue_summary(r.records),
         "accuracy": report.accuracy.as_dict() if report.accuracy is not None else None,
         "accuracy_online": report.online_accuracy.as_dict() if report.online_accuracy is not None else None,
         "wheel_only_accuracy": report.wheel_accuracy.as_dict() if report.wheel_accuracy is not None else None,
@@ -181,6 +214,9 @@ def summary_lines(report: JobReport, summary: dict, out: Path) -> list[str]:
     floor = _floor_line(r, summary)
     if floor is not None:
         lines.append(floor)
+    cues = _cue_line(summary)
+    if cues is not None:
+        lines.append(cues)
     if report.accuracy is not None:
         lines.append("accuracy (smoothed): " + report.accuracy.summary(metric=r.metric))
     if report.online_accuracy is not None:

@@ -356,6 +356,8 @@ class Pipeline:
             floor_tilt_y_deg=round(bo.floor_tilt_y_deg, 4) if bo is not None else float("nan"),
             floor_tilt_se_deg=round(bo.floor_tilt_se_deg, 4) if bo is not None else float("nan"),
             floor_normal_learnt=bo.floor_normal_learnt if bo is not None else False,
+            cue_disagreement=round(bo.cue_disagreement, 5) if bo is not None else float("nan"),
+            cues_agree=bo.cues_agree if bo is not None else None,
         )
 
 
