@@ -43,11 +43,19 @@ class JournalError(WindowVOError):
 class RunJournal:
     """Appends the journal's lines; :meth:`flush` (at every keyframe) hands them to the OS."""
 
-    def __init__(self, path: Path, header: dict):
+    def __init__(self, path: Path, header: dict, first_frame: int | None = None):
+        """A new journal; with ``first_frame``, a continuation segment appended to the existing one (a line cut
+        by the kill is ended first, so the segment's header line stays readable)."""
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = self.path.open("w")
-        self._pending: list[str] = [json.dumps({"journal": "windowvo", "version": JOURNAL_VERSION, **header})]
+        if first_frame is None:
+            self._fh = self.path.open("w")
+            self._pending: list[str] = [json.dumps({"journal": "windowvo", "version": JOURNAL_VERSION, **header})]
+        else:
+            cut = _ends_without_newline(self.path)
+            self._fh = self.path.open("a")
+            self._pending = [("\n" if cut else "") + json.dumps({"segment": {**header,
+                                                                            "first_frame": int(first_frame)}})]
         self.flush()
 
     def frame(self, record: FrameRecord, T_online: np.ndarray, wheel_m: float | None) -> None:
@@ -78,13 +86,25 @@ def mark_end(path: Path, end: str) -> None:
         fh.write(json.dumps({"end": end}) + "\n")
 
 
+def _ends_without_newline(path: Path) -> bool:
+    with Path(path).open("rb") as fh:
+        fh.seek(0, 2)
+        if fh.tell() == 0:
+            return False
+        fh.seek(-1, 2)
+        return fh.read(1) != b"\n"
+
+
 def _flat(T: np.ndarray) -> list[float]:
     return [float(v) for v in np.asarray(T, float).ravel()]
 
 
 @dataclass
 class JournalContents:
-    """What a journal holds: the header, one entry per finished frame, the final keyframe poses."""
+    """What a journal holds: the header, one entry per finished frame, the final keyframe poses.
+
+    :func:`read_journal` gives the whole sequence's view: the segments of continuations (``--resume``) placed
+    into the first run's world (``resumed_from``: the frame each one continued from)."""
 
     header: dict
     records: list[FrameRecord] = field(default_factory=list)
@@ -93,14 +113,21 @@ class JournalContents:
     final_keyframes: dict[int, tuple[float, np.ndarray]] = field(default_factory=dict)  # index -> (t, T_world_base)
     end: str | None = None
     n_bad_lines: int = 0  # unreadable lines (the last one, cut by the kill)
+    first_frame: int = 0  # a segment's first frame (its poses: world = base at that frame)
+    resumed_from: list[int] = field(default_factory=list)
 
     @property
     def timestamps(self) -> np.ndarray:
         return np.asarray([r.timestamp for r in self.records], float)
 
+    @property
+    def metric_cue(self) -> bool:
+        """The run had wheels or the floor for its scale (else its scale is arbitrary, one per run)."""
+        return bool(self.header.get("use_odometry") or self.header.get("use_ground"))
+
 
 def read_journal(path: Path) -> JournalContents:
-    """Read a journal, skipping a line cut short by a kill."""
+    """Read a journal, skipping a line cut short by a kill; continuation segments are placed by :func:`seam`."""
     try:
         lines = Path(path).read_text(errors="replace").splitlines()
     except OSError as err:
@@ -108,10 +135,11 @@ def read_journal(path: Path) -> JournalContents:
     header = _parse(lines[0]) if lines else None
     if not isinstance(header, dict) or header.get("journal") != "windowvo":
         raise JournalError(f"{path} is not a windowvo journal")
-    out = JournalContents(header)
+    pieces = [JournalContents(header)]
     names = {f.name for f in dataclasses.fields(FrameRecord)}
     for line in lines[1:]:
         obj = _parse(line)
+        out = pieces[-1]
         if not isinstance(obj, dict):
             out.n_bad_lines += 1
         elif "frame" in obj:
@@ -121,9 +149,83 @@ def read_journal(path: Path) -> JournalContents:
         elif "keyframe" in obj:
             out.final_keyframes[int(obj["keyframe"])] = (float(obj["t"]),
                                                          np.asarray(obj["T_world_base"], float).reshape(4, 4))
+        elif "segment" in obj:
+            seg = obj["segment"]
+            pieces.append(JournalContents({**header, **seg}, first_frame=int(seg["first_frame"])))
         elif "end" in obj:
             out.end = str(obj["end"])
-    return out
+    whole = pieces[0]
+    for piece in pieces[1:]:
+        whole = continued(whole, piece)
+    return whole
+
+
+@dataclass(frozen=True)
+class Seam:
+    """Where a continuation joins the run it continues: frames up to ``first_frame`` (``n_prefix`` journal rows)
+    are the earlier run's, later ones the continuation's, placed by :meth:`place`."""
+
+    first_frame: int
+    n_prefix: int
+    T_world_start: np.ndarray  # the earlier run's pose of frame first_frame: the continuation's world in ours
+    scale: float  # the earlier run's length unit per continuation unit (1 when both are metric)
+
+    def place(self, T_start_base: np.ndarray) -> np.ndarray:
+        """A continuation pose (world = base at its first frame, its own scale) in the earlier run's world."""
+        T = np.array(T_start_base, float)
+        T[:3, 3] *= self.scale
+        return self.T_world_start @ T
+
+
+def seam(base: JournalContents, first_frame: int, records: list[FrameRecord], online: list[np.ndarray]) -> Seam:
+    """How a continuation from ``first_frame`` (its stats rows and causal poses) joins ``base``: at the pose
+    ``base`` ends with for that frame (its final smoothed pose when it is a final keyframe), and, when the run has
+    no metric cue, scaled by :func:`overlap_scale`."""
+    n = sum(1 for r in base.records if r.frame_index <= first_frame)
+    if first_frame in base.final_keyframes:
+        T_start = base.final_keyframes[first_frame][1]
+    elif n:
+        T_start = resumed_trajectory(base).T_world_base[n - 1]
+    else:
+        T_start = np.eye(4)
+    s = 1.0 if base.metric_cue or n == 0 else overlap_scale(base, n - 1, records, online)
+    return Seam(first_frame, n, np.asarray(T_start, float), s)
+
+
+def overlap_scale(base: JournalContents, row: int, records: list[FrameRecord], online: list[np.ndarray]) -> float:
+    """The scale of a continuation starting at ``base``'s row ``row``, from the frames both ran (the earlier run's
+    journaled frames after it): the least-squares factor taking the continuation's keyframe positions (linearly
+    interpolated in time; its world is the base at its first frame) to the earlier run's causal keyframe
+    positions relative to that frame. 1 when they share less than two keyframes' motion."""
+    def keyframes(recs, poses):
+        rows = [i for i, r in enumerate(recs) if r.is_keyframe and r.backend_status]
+        return np.asarray([recs[i].timestamp for i in rows]), np.asarray([poses[i][:3, 3] for i in rows])
+
+    T_row_world = inv_T(base.online[row])
+    t_b, p_b = keyframes(base.records[row + 1:], [T_row_world @ T for T in base.online[row + 1:]])
+    t_c, p_c = keyframes(records, online)
+    if len(t_c) < 2 or len(t_b) < 2:
+        return 1.0
+    inside = (t_b >= t_c[0]) & (t_b <= t_c[-1])
+    p_i = np.stack([np.interp(t_b[inside], t_c, p_c[:, a]) for a in range(3)], axis=1)
+    den = float(np.sum(p_i * p_i))
+    if int(inside.sum()) < 2 or den < 1e-12:
+        return 1.0
+    return float(np.sum(p_b[inside] * p_i)) / den
+
+
+def continued(base: JournalContents, seg: JournalContents) -> JournalContents:
+    """``base`` continued by the segment ``seg`` (frames after its first one), in ``base``'s world."""
+    sm = seam(base, seg.first_frame, seg.records, seg.online)
+    keep = [i for i, r in enumerate(seg.records) if r.frame_index > sm.first_frame]
+    n = sm.n_prefix
+    finals = {k: v for k, v in base.final_keyframes.items() if k <= sm.first_frame}
+    finals.update({k: (t, sm.place(T)) for k, (t, T) in seg.final_keyframes.items() if k > sm.first_frame})
+    return JournalContents(
+        header=base.header, records=base.records[:n] + [seg.records[i] for i in keep],
+        online=base.online[:n] + [sm.place(seg.online[i]) for i in keep],
+        wheel_m=base.wheel_m[:n] + [seg.wheel_m[i] for i in keep], final_keyframes=finals, end=seg.end,
+        n_bad_lines=base.n_bad_lines + seg.n_bad_lines, resumed_from=[*base.resumed_from, sm.first_frame])
 
 
 def _parse(line: str) -> object:
