@@ -220,6 +220,8 @@ def continued(base: JournalContents, seg: JournalContents) -> JournalContents:
     keep = [i for i, r in enumerate(seg.records) if r.frame_index > sm.first_frame]
     n = sm.n_prefix
     finals = {k: v for k, v in base.final_keyframes.items() if k <= sm.first_frame}
+    if n and sm.first_frame not in finals:  # the continuation's first keyframe: its pose is fixed (the seam)
+        finals[sm.first_frame] = (base.records[n - 1].timestamp, sm.T_world_start)
     finals.update({k: (t, sm.place(T)) for k, (t, T) in seg.final_keyframes.items() if k > sm.first_frame})
     return JournalContents(
         header=base.header, records=base.records[:n] + [seg.records[i] for i in keep],
