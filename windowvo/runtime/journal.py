@@ -10,11 +10,14 @@ process killed at any moment loses at most the frames since the last keyframe th
 - ``{"keyframe": i, "t": t, "T_world_base": [16]}``: a keyframe's smoothed pose once it is final (it left the
   fixed-lag window: marginalised, never changed again). A monocular run made metric late rescales every keyframe
   before the window: they are journaled again, and the last line of a keyframe is its pose;
-- ``{"end": "complete" | "interrupted" | "resumed"}``: the run ended and its outputs were written (by ``--resume``
-  after a kill).
+- ``{"segment": {..., "first_frame": k}}``: a continuation (``--resume``) starts here; its frame and keyframe lines
+  follow, with frame indices of the whole sequence and poses in the continuation's own world (its base at frame
+  ``k``, its own scale);
+- ``{"end": "complete" | "interrupted" | "resumed"}``: the run (or the continuation) ended and its outputs were
+  written (``resumed``: by a ``--resume`` that had no frame left to run).
 
-:func:`read_journal` reads a (possibly cut) journal back and :func:`resumed_trajectory` rebuilds the smoothed
-trajectory from it (``python -m windowvo.run CONFIG --resume``).
+:func:`read_journal` reads a (possibly cut) journal back, the continuations placed into the first run's world
+(:func:`seam`), and :func:`resumed_trajectory` rebuilds the smoothed trajectory from it.
 """
 
 from __future__ import annotations
