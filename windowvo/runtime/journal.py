@@ -166,24 +166,28 @@ def read_journal(path: Path) -> JournalContents:
 @dataclass(frozen=True)
 class Seam:
     """Where a continuation joins the run it continues: frames up to ``first_frame`` (``n_prefix`` journal rows)
-    are the earlier run's, later ones the continuation's, placed by :meth:`place`."""
+    are the earlier run's, later ones the continuation's, placed by :meth:`place`. The continuation may have
+    started earlier (a warm-up): its pose of ``first_frame`` is then where it joins."""
 
     first_frame: int
     n_prefix: int
-    T_world_start: np.ndarray  # the earlier run's pose of frame first_frame: the continuation's world in ours
+    T_world_start: np.ndarray  # the earlier run's pose of frame first_frame
+    T_start_cworld: np.ndarray  # the inverse of the continuation's own pose of frame first_frame
     scale: float  # the earlier run's length unit per continuation unit (1 when both are metric)
 
-    def place(self, T_start_base: np.ndarray) -> np.ndarray:
-        """A continuation pose (world = base at its first frame, its own scale) in the earlier run's world."""
-        T = np.array(T_start_base, float)
+    def place(self, T_cworld_base: np.ndarray) -> np.ndarray:
+        """A continuation pose (in its own world and scale) in the earlier run's world."""
+        T = self.T_start_cworld @ np.asarray(T_cworld_base, float)
         T[:3, 3] *= self.scale
         return self.T_world_start @ T
 
 
-def seam(base: JournalContents, first_frame: int, records: list[FrameRecord], online: list[np.ndarray]) -> Seam:
-    """How a continuation from ``first_frame`` (its stats rows and causal poses) joins ``base``: at the pose
-    ``base`` ends with for that frame (its final smoothed pose when it is a final keyframe), and, when the run has
-    no metric cue, scaled by :func:`overlap_scale`."""
+def seam(base: JournalContents, first_frame: int, records: list[FrameRecord], online: list[np.ndarray],
+         T_cworld_start: np.ndarray | None = None) -> Seam:
+    """How a continuation (its stats rows and causal poses) joins ``base`` at frame ``first_frame``: its pose
+    there (``T_cworld_start``, default the identity: it started there) goes to the pose ``base`` ends with for that
+    frame (its final smoothed pose when it is a final keyframe), and, when the run has no metric cue, its
+    translations are scaled by :func:`overlap_scale` (on its frames from ``first_frame`` on)."""
     n = sum(1 for r in base.records if r.frame_index <= first_frame)
     if first_frame in base.final_keyframes:
         T_start = base.final_keyframes[first_frame][1]
@@ -191,8 +195,13 @@ def seam(base: JournalContents, first_frame: int, records: list[FrameRecord], on
         T_start = resumed_trajectory(base).T_world_base[n - 1]
     else:
         T_start = np.eye(4)
-    s = 1.0 if base.metric_cue or n == 0 else overlap_scale(base, n - 1, records, online)
-    return Seam(first_frame, n, np.asarray(T_start, float), s)
+    T_inv = inv_T(np.eye(4) if T_cworld_start is None else np.asarray(T_cworld_start, float))
+    from_k = [i for i, r in enumerate(records) if r.frame_index >= first_frame]
+    s = 1.0
+    if not base.metric_cue and n and from_k:
+        T_inv_online = inv_T(online[from_k[0]])  # the causal poses relative to the causal pose at the seam
+        s = overlap_scale(base, n - 1, [records[i] for i in from_k], [T_inv_online @ online[i] for i in from_k])
+    return Seam(first_frame, n, np.asarray(T_start, float), T_inv, s)
 
 
 def overlap_scale(base: JournalContents, row: int, records: list[FrameRecord], online: list[np.ndarray]) -> float:
@@ -218,8 +227,12 @@ def overlap_scale(base: JournalContents, row: int, records: list[FrameRecord], o
 
 
 def continued(base: JournalContents, seg: JournalContents) -> JournalContents:
-    """``base`` continued by the segment ``seg`` (frames after its first one), in ``base``'s world."""
-    sm = seam(base, seg.first_frame, seg.records, seg.online)
+    """``base`` continued by the segment ``seg`` (its frames after its seam frame), in ``base``'s world."""
+    k = int(seg.header.get("seam_frame", seg.first_frame))
+    rows = [i for i, r in enumerate(seg.records) if r.frame_index == k]
+    if not rows:  # killed in its warm-up, before the seam: nothing of it is kept
+        return dataclasses.replace(base, n_bad_lines=base.n_bad_lines + seg.n_bad_lines)
+    sm = seam(base, k, seg.records, seg.online, resumed_trajectory(seg).T_world_base[rows[0]])
     keep = [i for i, r in enumerate(seg.records) if r.frame_index > sm.first_frame]
     n = sm.n_prefix
     finals = {k: v for k, v in base.final_keyframes.items() if k <= sm.first_frame}
