@@ -230,7 +230,8 @@ def continued(base: JournalContents, seg: JournalContents) -> JournalContents:
     """``base`` continued by the segment ``seg`` (its frames after its seam frame), in ``base``'s world."""
     k = int(seg.header.get("seam_frame", seg.first_frame))
     rows = [i for i, r in enumerate(seg.records) if r.frame_index == k]
-    if not rows:  # killed in its warm-up, before the seam: nothing of it is kept
+    if not rows or not base.records or seg.records[-1].frame_index < base.records[-1].frame_index:
+        # stopped before it got as far as the run it continues: nothing of it is kept (a later one starts again)
         return dataclasses.replace(base, n_bad_lines=base.n_bad_lines + seg.n_bad_lines)
     sm = seam(base, k, seg.records, seg.online, resumed_trajectory(seg).T_world_base[rows[0]])
     keep = [i for i, r in enumerate(seg.records) if r.frame_index > sm.first_frame]

@@ -177,7 +177,10 @@ def resume(cfg: Config) -> RunResult:
         if not j.metric_cue:
             log.info("monocular run without a metric cue: the continuation scaled by %.4f (fit on the overlap)",
                      sm.scale)
-        return _write(cfg, JobReport(merged_result(j, sm, cont), seq), k, pipe)
+        merged = merged_result(j, sm, cont)
+        if len(merged.records) < len(j.records):  # stopped before the killed run's last frame: keep that one's
+            merged = resumed_result(j)
+        return _write(cfg, JobReport(merged, seq), k, pipe)
 
 
 def _write(cfg: Config, report: JobReport, k: int, pipe: Pipeline | None) -> RunResult:
