@@ -1,9 +1,11 @@
-"""Kill -9 a run at random frames, repeatedly, and check what ``--resume`` makes of the folder.
+"""Kill -9 a run at random frames, repeatedly, and check that ``--resume`` completes it as well as a run that was not.
 
 For each repeat: a run of SEQUENCE is killed (SIGKILL) once its journal holds a random number of finished frames;
 the folder must then hold a journal whose final keyframes cover every frame up to the last marginalised one, and
-``python -m windowvo.run CONFIG --resume`` must write trajectory.txt, stats.csv, summary.json ("resumed": true) and
-config_resolved.yaml, with the poses up to the last final keyframe equal to an uninterrupted run's.
+``python -m windowvo.run CONFIG --resume`` must continue the run to the end of the sequence: trajectory.txt with
+every frame (the poses up to the last final keyframe equal to an uninterrupted run's), stats.csv with every frame,
+summary.json ("resumed": true, "interrupted": false) and config_resolved.yaml, and an ATE (SE(3) RMSE) within
+--max-ratio (1.05) of the uninterrupted run's. Prints one row per repeat; exits 1 if any repeat fails.
 
     python scripts/kill_resume_check.py SEQUENCE_FOLDER WORK_FOLDER [--repeats 10] [--run-mode pipelined]
 """
@@ -14,10 +16,12 @@ import argparse
 import json
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +62,61 @@ def kill_at(cfg: Path, out: Path, n_frames: int, timeout: float = 600) -> float:
     return time.monotonic() - t0
 
 
+@dataclass
+class Repeat:
+    """One kill and its resume."""
+
+    kill_frames: int  # frames in the journal when the run was killed
+    journal_frames: int
+    last_final: int | None  # frame index of the journal's last final keyframe
+    resumed_from: int | None = None
+    ate: float | None = None
+    error: str = ""
+
+    def row(self, k: int, ref_ate: float) -> str:
+        ratio = f"{self.ate / ref_ate:.3f}" if self.ate is not None else "-"
+        ate = f"{self.ate:.4f}" if self.ate is not None else "-"
+        return (f"| {k} | {self.kill_frames} | {self.journal_frames} | {self.last_final} | {self.resumed_from} | "
+                f"{ref_ate:.4f} | {ate} | {ratio} | {self.error or 'ok'} |")
+
+
+def check_resumed(out: Path, rep: Repeat, ref, n_cover: int, max_ratio: float, ref_ate: float) -> Repeat:
+    """The resumed folder: every frame, the prefix equal to the reference, the ATE within max_ratio."""
+    traj = read_tum(out / "trajectory.txt")
+    summary = json.loads((out / "summary.json").read_text())
+    rep.resumed_from = summary.get("resumed_from_frame")
+    rep.ate = (summary.get("accuracy") or {}).get("ate_se3_rmse_m")
+    n_stats = len((out / "stats.csv").read_text().splitlines()) - 1
+    if len(traj) != len(ref) or n_stats != len(ref):
+        rep.error = f"{len(traj)} poses, {n_stats} stats rows, not {len(ref)}"
+    elif n_cover and not np.allclose(traj.T_world_base[:n_cover], ref.T_world_base[:n_cover], atol=1e-6):
+        rep.error = "prefix differs from the uninterrupted run"
+    elif summary.get("resumed") is not True or summary.get("interrupted") is not False:
+        rep.error = "summary.json not resumed/complete"
+    elif not (out / "config_resolved.yaml").is_file():
+        rep.error = "no config_resolved.yaml"
+    elif rep.ate is None or rep.ate > max_ratio * ref_ate:
+        rep.error = f"ATE ratio above {max_ratio}"
+    return rep
+
+
+def one_repeat(k: int, a: argparse.Namespace, target: int, ref, ref_ate: float) -> Repeat:
+    out = (a.work / f"killed-{k}").resolve()
+    cfg = a.work / f"killed-{k}.yaml"
+    write_config(cfg, a.sequence.resolve(), out, a.run_mode)
+    if out.exists():
+        shutil.rmtree(out)
+    kill_at(cfg, out, target)
+    j = read_journal(out / JOURNAL_NAME)
+    last = last_final_frame(j)
+    rep = Repeat(target, len(j.records), None if last is None else j.records[last].frame_index)
+    r = run([str(cfg), "--resume"])
+    if r.returncode != 0:
+        rep.error = f"--resume exit {r.returncode}: {r.stderr.strip().splitlines()[-1:]}"
+        return rep
+    return check_resumed(out, rep, ref, 0 if last is None else last + 1, a.max_ratio, ref_ate)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sequence", type=Path)
@@ -65,6 +124,7 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--run-mode", default="pipelined")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--max-ratio", type=float, default=1.05, help="largest ATE resumed / uninterrupted accepted")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     ref_cfg = a.work / "reference.yaml"
@@ -75,43 +135,17 @@ def main() -> int:
     wall_ref = time.monotonic() - t
     ref = read_tum(a.work / "reference" / "trajectory.txt")
     ref_ate = json.loads((a.work / "reference" / "summary.json").read_text())["accuracy"]["ate_se3_rmse_m"]
-    n_total = len(ref)
     rng = random.Random(a.seed)
+    print(f"reference ({a.run_mode}): {len(ref)} frames, {wall_ref:.1f} s, ATE SE(3) {ref_ate:.4f} m\n")
+    print("| repeat | killed at (journaled frames) | journal frames | last final kf | resumed from | "
+          "ATE uninterrupted (m) | ATE resumed (m) | ratio | check |")
+    print("|---|---|---|---|---|---|---|---|---|")
     failures = 0
-    print(f"reference: {n_total} frames, {wall_ref:.1f} s, ATE SE(3) {ref_ate:.4f} m")
     for k in range(a.repeats):
-        out = (a.work / f"killed-{k}").resolve()
-        cfg = a.work / f"killed-{k}.yaml"
-        write_config(cfg, a.sequence.resolve(), out, a.run_mode)
-        if out.exists():
-            run([str(cfg), "--force", "max_frames=1"])  # start clean (the old files moved aside)
-            for f in out.iterdir():
-                if f.is_file():
-                    f.unlink()
-        target = rng.randint(1, n_total - 1)
-        t_kill = kill_at(cfg, out, target)
-        j = read_journal(out / JOURNAL_NAME)
-        last = last_final_frame(j)
-        r = run([str(cfg), "--resume"])
-        ok = r.returncode == 0
-        msg = r.stderr.strip().splitlines()[-1:] if not ok else []
-        if ok:
-            traj = read_tum(out / "trajectory.txt")
-            summary = json.loads((out / "summary.json").read_text())
-            n_cover = 0 if last is None else last + 1
-            same = len(traj) == len(j.records) and (n_cover == 0 or np.allclose(
-                traj.T_world_base[:n_cover], ref.T_world_base[:n_cover], atol=1e-6))
-            ok = same and summary.get("resumed") is True and (out / "stats.csv").is_file() and (
-                out / "config_resolved.yaml").is_file()
-            ate = (summary.get("accuracy") or {}).get("ate_se3_rmse_m")
-            print(f"kill {k}: at {target} frames ({t_kill:.1f} s): journal {len(j.records)} frames, "
-                  f"{len(j.final_keyframes)} final keyframes, smoothed through frame "
-                  f"{None if last is None else j.records[last].frame_index}; resumed trajectory {len(traj)} poses, "
-                  f"equal to the reference up to there: {same}; ATE of the part {ate}")
-        else:
-            print(f"kill {k}: at {target} frames: --resume failed: {msg}")
-        failures += not ok
-    print(f"{a.repeats - failures}/{a.repeats} kills resumed correctly")
+        rep = one_repeat(k, a, rng.randint(1, len(ref) - 1), ref, ref_ate)
+        print(rep.row(k, ref_ate), flush=True)
+        failures += bool(rep.error)
+    print(f"\n{a.repeats - failures}/{a.repeats} kills resumed to the end within {a.max_ratio}x the ATE")
     return 1 if failures else 0
 
 

@@ -209,32 +209,107 @@ def _injected_method(module: str, cls: str, meth: str, signame: str, args: list[
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=TIMEOUT)
 
 
-def test_sigkill_then_resume_gives_the_smoothed_trajectory(seq, tmp_path, reference):
-    _, ref_out, _ = reference
-    out = tmp_path / "out"
-    cfg = config(tmp_path / "c.yaml", seq, out)
-    proc = subprocess.Popen([sys.executable, "-m", "windowvo.run", str(cfg), "--no-progress", "-q"], env=ENV,
+def _kill_when(cmd: list[str], out: Path, n_frames: int) -> None:
+    """Run ``python -m windowvo.run CMD`` in its own session, SIGKILL its group once the journal holds n_frames."""
+    proc = subprocess.Popen([sys.executable, "-m", "windowvo.run", *cmd, "--no-progress", "-q"], env=ENV,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     t0 = time.monotonic()
-    while proc.poll() is None and _journal_frames(out) < 100 and time.monotonic() - t0 < TIMEOUT:
-        time.sleep(0.01)
+    while proc.poll() is None and _journal_frames(out) < n_frames and time.monotonic() - t0 < TIMEOUT:
+        time.sleep(0.002)
+    assert proc.poll() is None, "the run ended before it could be killed"
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait(timeout=TIMEOUT)
+
+
+@pytest.fixture(scope="module")
+def killed(seq, tmp_path_factory):
+    """A run killed by SIGKILL once its journal held 100 frames (tests resume copies of the folder)."""
+    d = tmp_path_factory.mktemp("killed")
+    out = d / "out"
+    _kill_when([str(config(d / "c.yaml", seq, out))], out, 100)
+    return out
+
+
+def _copy_killed(killed: Path, seq: Path, tmp_path: Path) -> tuple[Path, Path]:
+    out = tmp_path / "out"
+    shutil.copytree(killed, out)
+    return config(tmp_path / "c.yaml", seq, out), out
+
+
+def _ate(out: Path) -> float:
+    return json.loads((out / "summary.json").read_text())["accuracy"]["ate_se3_rmse_m"]
+
+
+def _assert_whole_sequence(out: Path, ref_out: Path) -> dict:
+    """The resumed folder covers every frame of the sequence, as accurately as the uninterrupted run (1.05x)."""
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["resumed"] is True and summary["interrupted"] is False
+    assert summary["frames"] == n_poses(out / "trajectory.txt") == n_rows(out / "stats.csv") == 161
+    assert n_poses(out / "trajectory_online.txt") == 161
+    frames = [int(ln.split(",")[0]) for ln in (out / "stats.csv").read_text().splitlines()[1:]]
+    assert frames == list(range(161))
+    assert _ate(out) <= 1.05 * _ate(ref_out), (_ate(out), _ate(ref_out))
+    return summary
+
+
+def test_sigkill_then_resume_continues_to_the_end(seq, tmp_path, reference, killed):
+    _, ref_out, _ = reference
+    cfg, out = _copy_killed(killed, seq, tmp_path)
     j = read_journal(out / JOURNAL_NAME)
     last = last_final_frame(j)
     assert last is not None and len(j.records) >= 100
     assert not (out / "trajectory.txt").exists()
     r = cli(str(cfg), "--resume")
     assert r.returncode == 0, r.stderr
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["resumed"] is True and summary["interrupted"] is True
+    summary = _assert_whole_sequence(out, ref_out)
+    assert summary["resumed_from_frame"] == j.records[last].frame_index
     traj, ref = read_tum(out / "trajectory.txt"), read_tum(ref_out / "trajectory.txt")
-    assert len(traj) == n_rows(out / "stats.csv") == len(j.records)
     # Every frame up to the last marginalised keyframe has the uninterrupted run's smoothed pose.
     np.testing.assert_allclose(traj.T_world_base[: last + 1], ref.T_world_base[: last + 1], atol=1e-6)
     assert (out / "config_resolved.yaml").is_file()
     again = cli(str(cfg), "--resume")
     assert again.returncode == 2 and "nothing to resume" in one_line_error(again)
+
+
+def test_a_kill_during_resume_is_resumed_again(seq, tmp_path, reference, killed):
+    _, ref_out, _ = reference
+    cfg, out = _copy_killed(killed, seq, tmp_path)
+    n_before = _journal_frames(out)
+    _kill_when([str(cfg), "--resume"], out, n_before + 130)  # 130 frames into the continuation (from frame 0)
+    j = read_journal(out / JOURNAL_NAME)
+    assert len(j.resumed_from) == 1 and j.end is None and len(j.records) >= n_before
+    r = cli(str(cfg), "--resume")
+    assert r.returncode == 0, r.stderr
+    _assert_whole_sequence(out, ref_out)
+    assert len(read_journal(out / JOURNAL_NAME).resumed_from) == 2
+
+
+def test_sigterm_during_resume_writes_the_frames_so_far_and_resumes_again(seq, tmp_path, reference, killed):
+    _, ref_out, _ = reference
+    cfg, out = _copy_killed(killed, seq, tmp_path)
+    code = textwrap.dedent(f"""
+        import os, signal, sys
+        import windowvo.run
+        from windowvo.runtime.pipeline import Pipeline
+        orig, calls = Pipeline._step, []
+        def patched(self, *a, **k):  # SIGTERM at the continuation's 130th frame (it starts before the seam)
+            calls.append(1)
+            if len(calls) == 130:
+                os.kill(os.getpid(), signal.SIGTERM)
+            return orig(self, *a, **k)
+        Pipeline._step = patched
+        sys.exit(windowvo.run.main({[str(cfg), "--resume", "--no-progress", "-q"]!r}))
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=TIMEOUT)
+    assert r.returncode == 143, r.stderr
+    assert "Traceback" not in r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["resumed"] is True and summary["interrupted"] is True
+    assert len(read_journal(killed / JOURNAL_NAME).records) <= summary["frames"] < 161  # nothing finished is lost
+    assert n_poses(out / "trajectory.txt") == n_rows(out / "stats.csv") == summary["frames"]
+    again = cli(str(cfg), "--resume")
+    assert again.returncode == 0, again.stderr
+    _assert_whole_sequence(out, ref_out)
 
 
 def test_a_second_run_into_a_used_folder_is_refused(reference):

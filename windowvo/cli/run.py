@@ -32,7 +32,8 @@ paths are resolved against the config file. Every other key has a default; see d
 config_resolved.yaml, summary.json and recording.rrd (when viz.rerun=save).
 Each run holds OUT/.windowvo.lock; a folder holding an earlier run's files is refused
 unless --force (they are moved to OUT/previous-<time>/); the embedded default replaces its
-own previous run. --resume turns a killed run's folder into its outputs (journal.jsonl).
+own previous run. --resume continues a killed run from its journal (journal.jsonl) to the
+end of the sequence.
 Exit codes: 0 done, 2 bad input or configuration, 130 interrupted by SIGINT, 143 by SIGTERM
 (results so far still written).
 """
@@ -55,8 +56,8 @@ def _parser() -> argparse.ArgumentParser:
     how.add_argument("--force", action="store_true",
                      help="run even if the output folder holds an earlier run's files (moved to OUT/previous-<time>/)")
     how.add_argument("--resume", action="store_true",
-                     help="write the outputs of a killed run in the output folder from its journal (no frame is "
-                          "processed again)")
+                     help="continue a killed (or interrupted) run in the output folder to the end of the sequence: "
+                          "its journal's frames up to the last final keyframe are kept, the rest is run again")
     return p
 
 
@@ -106,8 +107,7 @@ def _main(argv: list[str] | None) -> int:
             if args.resume:
                 from ..runtime.resume import resume
 
-                resume(cfg)
-                return 0
+                result = resume(cfg)  # a signal during the continuation: exit 130/143 as a run does
             else:
                 prepare_output(cfg.output, force=args.force, replace=config_arg is None)
                 from ..runtime.job import run_and_report  # the pipeline (GTSAM, OpenCV) is loaded only now

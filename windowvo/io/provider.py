@@ -107,23 +107,26 @@ class DataProvider:
             stop.set()
 
     def __iter__(self) -> Iterator[Frame | SkippedFrame]:
+        """The frames in order, named by their index in the whole sequence (``seq.first_frame`` on: a
+        sub-sequence's frames keep their indices)."""
         ts = self.seq.timestamps
+        first = self.seq.first_frame
         for i, img_or_err in self._images():
-            t = float(ts[i])
+            t, idx = float(ts[i]), first + i
             if i > 0 and self.nominal_dt > 0 and ts[i] - ts[i - 1] > self.checks.max_time_gap_factor * self.nominal_dt:
                 gap = ts[i] - ts[i - 1]
-                log.warning("timestamp gap of %.3f s before frame %d (about %d frames dropped)", gap, i,
+                log.warning("timestamp gap of %.3f s before frame %d (about %d frames dropped)", gap, idx,
                             int(round(gap / self.nominal_dt)) - 1)
             if isinstance(img_or_err, FrameError):
-                yield SkippedFrame(i, t, str(img_or_err))
+                yield SkippedFrame(idx, t, str(img_or_err))
                 continue
             img = img_or_err
             mean = float(cv2.mean(img)[0])  # OpenCV's: a tenth of numpy's time on a 640x480 frame
             if mean < self.checks.black_frame_mean:
-                yield SkippedFrame(i, t, f"frame {i}: black frame (mean {mean:.1f})")
+                yield SkippedFrame(idx, t, f"frame {idx}: black frame (mean {mean:.1f})")
                 continue
             if self._prev_img is not None and np.array_equal(img, self._prev_img):
-                yield SkippedFrame(i, t, f"frame {i}: exact duplicate of the previous frame")
+                yield SkippedFrame(idx, t, f"frame {idx}: exact duplicate of the previous frame")
                 continue
             self._prev_img = img
-            yield Frame(i, t, img, self._mask(i))
+            yield Frame(idx, t, img, self._mask(i))

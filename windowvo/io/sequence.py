@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +44,7 @@ class Sequence:
     groundtruth: Trajectory | None = None
     warnings: list[str] = field(default_factory=list)
     name: str = ""
+    first_frame: int = 0  # index, in the sequence it was cut from, of this one's frame 0 (see subsequence)
 
     def __len__(self) -> int:
         return len(self.image_paths)
@@ -52,14 +54,15 @@ class Sequence:
         return self.image_paths[i].name
 
     def read_image(self, i: int) -> np.ndarray:
-        """Grayscale uint8 image of frame i; raises FrameError when it cannot be used."""
+        """Grayscale uint8 image of frame i; raises FrameError when it cannot be used (the message names the
+        frame by its index in the whole sequence)."""
         p = self.image_paths[i]
         img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
         if img is None:
-            raise FrameError(f"frame {i} ({p.name}): unreadable image file")
+            raise FrameError(f"frame {self.first_frame + i} ({p.name}): unreadable image file")
         if img.shape != (self.camera.height, self.camera.width):
             raise FrameError(
-                f"frame {i} ({p.name}): size {img.shape[1]}x{img.shape[0]} differs from camera "
+                f"frame {self.first_frame + i} ({p.name}): size {img.shape[1]}x{img.shape[0]} differs from camera "
                 f"{self.camera.width}x{self.camera.height}"
             )
         return img
@@ -92,15 +95,15 @@ class StreamedSequence(Sequence):
         return len(self.timestamps)
 
     def frame_name(self, i: int) -> str:
-        return f"{i:06d}.png"
+        return f"{self.first_frame + i:06d}.png"
 
     def read_image(self, i: int) -> np.ndarray:
         if self.source is None:
             raise FrameError(f"frame {i}: the sequence has no frame source")
-        img = self.source.read(i)
+        img = self.source.read(self.first_frame + i)
         if img.shape != (self.camera.height, self.camera.width):
             raise FrameError(
-                f"frame {i}: size {img.shape[1]}x{img.shape[0]} differs from camera "
+                f"frame {self.first_frame + i}: size {img.shape[1]}x{img.shape[0]} differs from camera "
                 f"{self.camera.width}x{self.camera.height}"
             )
         return img
@@ -108,6 +111,26 @@ class StreamedSequence(Sequence):
     def close(self) -> None:
         if self.source is not None:
             self.source.close()
+
+
+def subsequence(seq: Sequence, first: int, end: int | None = None) -> Sequence:
+    """Frames ``first .. end - 1`` of ``seq`` as a sequence of their own (``end``: None for the last frame).
+
+    Its frame ``i`` is frame ``first + i`` of ``seq`` (``first_frame`` says where it starts, so a run of it can
+    name its frames by their index in the whole sequence); its wheel odometry starts at the last sample at or
+    before frame ``first``'s time (the wheel pose at that frame is interpolated, not extrapolated); the ground
+    truth is the whole sequence's. A streamed sequence shares its frame source."""
+    end = len(seq) if end is None else min(end, len(seq))
+    if not 0 <= first < end:
+        raise SequenceError(f"no frame {first} in {seq.root} ({len(seq)} frames, up to frame {end - 1} used)")
+    odo = seq.odometry
+    if odo is not None:
+        ts = odo.timestamps
+        i0 = max(int(np.searchsorted(ts, seq.timestamps[first], side="right")) - 1, 0)
+        odo = dataclasses.replace(odo, timestamps=ts[i0:], x=odo.x[i0:], y=odo.y[i0:], yaw=odo.yaw[i0:],
+                                  rejected_times=odo.rejected_times[odo.rejected_times >= ts[i0]])
+    return dataclasses.replace(seq, image_paths=seq.image_paths[first:end], timestamps=seq.timestamps[first:end],
+                               odometry=odo, warnings=list(seq.warnings), first_frame=seq.first_frame + first)
 
 
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")

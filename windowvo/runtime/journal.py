@@ -10,11 +10,14 @@ process killed at any moment loses at most the frames since the last keyframe th
 - ``{"keyframe": i, "t": t, "T_world_base": [16]}``: a keyframe's smoothed pose once it is final (it left the
   fixed-lag window: marginalised, never changed again). A monocular run made metric late rescales every keyframe
   before the window: they are journaled again, and the last line of a keyframe is its pose;
-- ``{"end": "complete" | "interrupted" | "resumed"}``: the run ended and its outputs were written (by ``--resume``
-  after a kill).
+- ``{"segment": {..., "first_frame": k}}``: a continuation (``--resume``) starts here; its frame and keyframe lines
+  follow, with frame indices of the whole sequence and poses in the continuation's own world (its base at frame
+  ``k``, its own scale);
+- ``{"end": "complete" | "interrupted" | "resumed"}``: the run (or the continuation) ended and its outputs were
+  written (``resumed``: by a ``--resume`` that had no frame left to run).
 
-:func:`read_journal` reads a (possibly cut) journal back and :func:`resumed_trajectory` rebuilds the smoothed
-trajectory from it (``python -m windowvo.run CONFIG --resume``).
+:func:`read_journal` reads a (possibly cut) journal back, the continuations placed into the first run's world
+(:func:`seam`), and :func:`resumed_trajectory` rebuilds the smoothed trajectory from it.
 """
 
 from __future__ import annotations
@@ -43,11 +46,19 @@ class JournalError(WindowVOError):
 class RunJournal:
     """Appends the journal's lines; :meth:`flush` (at every keyframe) hands them to the OS."""
 
-    def __init__(self, path: Path, header: dict):
+    def __init__(self, path: Path, header: dict, first_frame: int | None = None):
+        """A new journal; with ``first_frame``, a continuation segment appended to the existing one (a line cut
+        by the kill is ended first, so the segment's header line stays readable)."""
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = self.path.open("w")
-        self._pending: list[str] = [json.dumps({"journal": "windowvo", "version": JOURNAL_VERSION, **header})]
+        if first_frame is None:
+            self._fh = self.path.open("w")
+            self._pending: list[str] = [json.dumps({"journal": "windowvo", "version": JOURNAL_VERSION, **header})]
+        else:
+            cut = _ends_without_newline(self.path)
+            self._fh = self.path.open("a")
+            self._pending = [("\n" if cut else "") + json.dumps({"segment": {**header,
+                                                                            "first_frame": int(first_frame)}})]
         self.flush()
 
     def frame(self, record: FrameRecord, T_online: np.ndarray, wheel_m: float | None) -> None:
@@ -78,13 +89,25 @@ def mark_end(path: Path, end: str) -> None:
         fh.write(json.dumps({"end": end}) + "\n")
 
 
+def _ends_without_newline(path: Path) -> bool:
+    with Path(path).open("rb") as fh:
+        fh.seek(0, 2)
+        if fh.tell() == 0:
+            return False
+        fh.seek(-1, 2)
+        return fh.read(1) != b"\n"
+
+
 def _flat(T: np.ndarray) -> list[float]:
     return [float(v) for v in np.asarray(T, float).ravel()]
 
 
 @dataclass
 class JournalContents:
-    """What a journal holds: the header, one entry per finished frame, the final keyframe poses."""
+    """What a journal holds: the header, one entry per finished frame, the final keyframe poses.
+
+    :func:`read_journal` gives the whole sequence's view: the segments of continuations (``--resume``) placed
+    into the first run's world (``resumed_from``: the frame each one continued from)."""
 
     header: dict
     records: list[FrameRecord] = field(default_factory=list)
@@ -93,14 +116,21 @@ class JournalContents:
     final_keyframes: dict[int, tuple[float, np.ndarray]] = field(default_factory=dict)  # index -> (t, T_world_base)
     end: str | None = None
     n_bad_lines: int = 0  # unreadable lines (the last one, cut by the kill)
+    first_frame: int = 0  # a segment's first frame (its poses: world = base at that frame)
+    resumed_from: list[int] = field(default_factory=list)
 
     @property
     def timestamps(self) -> np.ndarray:
         return np.asarray([r.timestamp for r in self.records], float)
 
+    @property
+    def metric_cue(self) -> bool:
+        """The run had wheels or the floor for its scale (else its scale is arbitrary, one per run)."""
+        return bool(self.header.get("use_odometry") or self.header.get("use_ground"))
+
 
 def read_journal(path: Path) -> JournalContents:
-    """Read a journal, skipping a line cut short by a kill."""
+    """Read a journal, skipping a line cut short by a kill; continuation segments are placed by :func:`seam`."""
     try:
         lines = Path(path).read_text(errors="replace").splitlines()
     except OSError as err:
@@ -108,10 +138,11 @@ def read_journal(path: Path) -> JournalContents:
     header = _parse(lines[0]) if lines else None
     if not isinstance(header, dict) or header.get("journal") != "windowvo":
         raise JournalError(f"{path} is not a windowvo journal")
-    out = JournalContents(header)
+    pieces = [JournalContents(header)]
     names = {f.name for f in dataclasses.fields(FrameRecord)}
     for line in lines[1:]:
         obj = _parse(line)
+        out = pieces[-1]
         if not isinstance(obj, dict):
             out.n_bad_lines += 1
         elif "frame" in obj:
@@ -121,9 +152,99 @@ def read_journal(path: Path) -> JournalContents:
         elif "keyframe" in obj:
             out.final_keyframes[int(obj["keyframe"])] = (float(obj["t"]),
                                                          np.asarray(obj["T_world_base"], float).reshape(4, 4))
+        elif "segment" in obj:
+            seg = obj["segment"]
+            pieces.append(JournalContents({**header, **seg}, first_frame=int(seg["first_frame"])))
         elif "end" in obj:
             out.end = str(obj["end"])
-    return out
+    whole = pieces[0]
+    for piece in pieces[1:]:
+        whole = continued(whole, piece)
+    return whole
+
+
+@dataclass(frozen=True)
+class Seam:
+    """Where a continuation joins the run it continues: frames up to ``first_frame`` (``n_prefix`` journal rows)
+    are the earlier run's, later ones the continuation's, placed by :meth:`place`. The continuation may have
+    started earlier (a warm-up): its pose of ``first_frame`` is then where it joins."""
+
+    first_frame: int
+    n_prefix: int
+    T_world_start: np.ndarray  # the earlier run's pose of frame first_frame
+    T_start_cworld: np.ndarray  # the inverse of the continuation's own pose of frame first_frame
+    scale: float  # the earlier run's length unit per continuation unit (1 when both are metric)
+
+    def place(self, T_cworld_base: np.ndarray) -> np.ndarray:
+        """A continuation pose (in its own world and scale) in the earlier run's world."""
+        T = self.T_start_cworld @ np.asarray(T_cworld_base, float)
+        T[:3, 3] *= self.scale
+        return self.T_world_start @ T
+
+
+def seam(base: JournalContents, first_frame: int, records: list[FrameRecord], online: list[np.ndarray],
+         T_cworld_start: np.ndarray | None = None) -> Seam:
+    """How a continuation (its stats rows and causal poses) joins ``base`` at frame ``first_frame``: its pose
+    there (``T_cworld_start``, default the identity: it started there) goes to the pose ``base`` ends with for that
+    frame (its final smoothed pose when it is a final keyframe), and, when the run has no metric cue, its
+    translations are scaled by :func:`overlap_scale` (on its frames from ``first_frame`` on)."""
+    n = sum(1 for r in base.records if r.frame_index <= first_frame)
+    if first_frame in base.final_keyframes:
+        T_start = base.final_keyframes[first_frame][1]
+    elif n:
+        T_start = resumed_trajectory(base).T_world_base[n - 1]
+    else:
+        T_start = np.eye(4)
+    T_inv = inv_T(np.eye(4) if T_cworld_start is None else np.asarray(T_cworld_start, float))
+    from_k = [i for i, r in enumerate(records) if r.frame_index >= first_frame]
+    s = 1.0
+    if not base.metric_cue and n and from_k:
+        T_inv_online = inv_T(online[from_k[0]])  # the causal poses relative to the causal pose at the seam
+        s = overlap_scale(base, n - 1, [records[i] for i in from_k], [T_inv_online @ online[i] for i in from_k])
+    return Seam(first_frame, n, np.asarray(T_start, float), T_inv, s)
+
+
+def overlap_scale(base: JournalContents, row: int, records: list[FrameRecord], online: list[np.ndarray]) -> float:
+    """The scale of a continuation starting at ``base``'s row ``row``, from the frames both ran (the earlier run's
+    journaled frames after it): the least-squares factor taking the continuation's keyframe positions (linearly
+    interpolated in time; its world is the base at its first frame) to the earlier run's causal keyframe
+    positions relative to that frame. 1 when they share less than two keyframes' motion."""
+    def keyframes(recs, poses):
+        rows = [i for i, r in enumerate(recs) if r.is_keyframe and r.backend_status]
+        return np.asarray([recs[i].timestamp for i in rows]), np.asarray([poses[i][:3, 3] for i in rows])
+
+    T_row_world = inv_T(base.online[row])
+    t_b, p_b = keyframes(base.records[row + 1:], [T_row_world @ T for T in base.online[row + 1:]])
+    t_c, p_c = keyframes(records, online)
+    if len(t_c) < 2 or len(t_b) < 2:
+        return 1.0
+    inside = (t_b >= t_c[0]) & (t_b <= t_c[-1])
+    p_i = np.stack([np.interp(t_b[inside], t_c, p_c[:, a]) for a in range(3)], axis=1)
+    den = float(np.sum(p_i * p_i))
+    if int(inside.sum()) < 2 or den < 1e-12:
+        return 1.0
+    return float(np.sum(p_b[inside] * p_i)) / den
+
+
+def continued(base: JournalContents, seg: JournalContents) -> JournalContents:
+    """``base`` continued by the segment ``seg`` (its frames after its seam frame), in ``base``'s world."""
+    k = int(seg.header.get("seam_frame", seg.first_frame))
+    rows = [i for i, r in enumerate(seg.records) if r.frame_index == k]
+    if not rows or not base.records or seg.records[-1].frame_index < base.records[-1].frame_index:
+        # stopped before it got as far as the run it continues: nothing of it is kept (a later one starts again)
+        return dataclasses.replace(base, n_bad_lines=base.n_bad_lines + seg.n_bad_lines)
+    sm = seam(base, k, seg.records, seg.online, resumed_trajectory(seg).T_world_base[rows[0]])
+    keep = [i for i, r in enumerate(seg.records) if r.frame_index > sm.first_frame]
+    n = sm.n_prefix
+    finals = {k: v for k, v in base.final_keyframes.items() if k <= sm.first_frame}
+    if n and sm.first_frame not in finals:  # the continuation's first keyframe: its pose is fixed (the seam)
+        finals[sm.first_frame] = (base.records[n - 1].timestamp, sm.T_world_start)
+    finals.update({k: (t, sm.place(T)) for k, (t, T) in seg.final_keyframes.items() if k > sm.first_frame})
+    return JournalContents(
+        header=base.header, records=base.records[:n] + [seg.records[i] for i in keep],
+        online=base.online[:n] + [sm.place(seg.online[i]) for i in keep],
+        wheel_m=base.wheel_m[:n] + [seg.wheel_m[i] for i in keep], final_keyframes=finals, end=seg.end,
+        n_bad_lines=base.n_bad_lines + seg.n_bad_lines, resumed_from=[*base.resumed_from, sm.first_frame])
 
 
 def _parse(line: str) -> object:

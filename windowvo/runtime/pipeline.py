@@ -111,7 +111,11 @@ class Pipeline:
     """Runs a sequence through the streaming odometry and collects what the outputs need."""
 
     def __init__(self, cfg: Config, seq: Sequence, viewer=None, progress: Callable | None = None,
-                 journal: bool = True, worker: BackendWorker | None = None):
+                 journal: bool = True, worker: BackendWorker | None = None, continuation: int | None = None):
+        """``continuation``: the run continues a killed one (``--resume``) on a sub-sequence from frame
+        ``seq.first_frame``, joining it at this frame: its journal lines are appended to the folder's journal as a
+        new segment (poses in the continuation's own world, frame indices of the whole sequence), and
+        ``trajectory_online.txt`` is left to the caller (it writes the whole sequence's at the end)."""
         self.cfg = cfg
         self.seq = seq
         self.viewer = viewer
@@ -138,10 +142,12 @@ class Pipeline:
         self._pending: deque[tuple[TrackedFrame, Frame | None]] = deque()
         self._give_up: Callable[[], bool] = lambda: False  # stop waiting for the worker (a signal while draining)
         self._journal = TumJournal(cfg.output / "trajectory_online.txt", ONLINE_HEADER + " (run in progress)") \
-            if journal else None
+            if journal and continuation is None else None
         self._run_journal = RunJournal(cfg.output / JOURNAL_NAME, {
             "pid": os.getpid(), "started": time.time(), "run_mode": cfg.run_mode.value, "sequence": str(cfg.sequence),
-            "use_odometry": self.use_odometry, "use_ground": self.vo.plan.use_ground}) if journal else None
+            "use_odometry": self.use_odometry, "use_ground": self.vo.plan.use_ground,
+            **({} if continuation is None else {"seam_frame": int(continuation)})},
+            first_frame=seq.first_frame if continuation is not None else None) if journal else None
         self._window: list[int] = []  # keyframes in the back end's window after the latest result
         self._kf_time: dict[int, float] = {}
         self._last_kf_t: float | None = None  # the newest finished keyframe's time
@@ -204,7 +210,7 @@ class Pipeline:
         n_total = len(self.provider)
         with stop.abortable():
             for n_read, item in enumerate(self.provider, 1):
-                self._step(item, item.index == n_total - 1)
+                self._step(item, n_read == n_total)
                 if self.progress is not None:  # frames through the front end (pipelined: some still wait)
                     self.progress(n_read, len(self.kf_frames))
                 if stop.requested() is not None:
