@@ -229,8 +229,12 @@ class WheelCalibrationConfig(_Section):
 
     enabled: bool = Field(True, description="estimate the wheels' scale and yaw bias in the window, from the first "
                           "keyframe whose floor landmarks fix the metric scale")
-    scale_prior_sigma: float = Field(0.03, gt=0, description="prior sigma of the scale (around 1)")
-    yaw_bias_prior_sigma: float = Field(0.02, gt=0, description="prior sigma of the yaw bias (rad/m, around 0)")
+    initial_scale: float = Field(1.0, gt=0, description="the scale the calibration starts from (a robot's known "
+                                 "calibration, e.g. a previous run's summary.json)")
+    initial_yaw_bias_per_m: float = Field(0.0, description="the yaw bias (rad/m) it starts from")
+    scale_prior_sigma: float = Field(0.03, gt=0, description="prior sigma of the scale (around initial_scale)")
+    yaw_bias_prior_sigma: float = Field(0.02, gt=0, description="prior sigma of the yaw bias (rad/m, around "
+                                        "initial_yaw_bias_per_m)")
     scale_walk_per_sqrt_m: float = Field(1e-3, gt=0, description="random walk of the scale per sqrt(metre)")
     yaw_bias_walk_per_sqrt_m: float = Field(2e-4, gt=0, description="random walk of the yaw bias per sqrt(metre)")
 

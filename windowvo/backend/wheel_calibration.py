@@ -36,7 +36,8 @@ class WheelCalibrationStates:
         self.start = -1  # keyframe the calibration started (or restarted) at
         self.key = -1  # keyframe index of the live calibration state C(key)
         self.distance_m = 0.0  # driven since C(key) was created (its random walk)
-        self.calib = WheelCalibration()
+        wc = cfg.wheel_calibration
+        self.calib = WheelCalibration(wc.initial_scale, wc.initial_yaw_bias_per_m)
         self._release_scale = False  # the next new state joins with a random walk as wide as the scale's prior
 
     def release_scale(self) -> None:

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from ..backend.report import ScaleReport
+from ..backend.wheel_calibration import RESET_CALIBRATION_SIGMA_FACTOR
 from ..config import Config, RunMode
 from ..errors import WindowVOError
 from ..io.sequence import Sequence, subsequence
@@ -138,6 +139,25 @@ def merged_result(j: JournalContents, sm: Seam, cont: RunResult) -> RunResult:
         wheel_time_offset=cont.wheel_time_offset)
 
 
+def warm_started(cfg: Config, j: JournalContents, first_frame: int) -> Config:
+    """The config of a continuation from ``first_frame``: its wheel calibration starts where the killed run's
+    was there (the last keyframe's estimate at or before it in the journal), with the prior sigmas a window
+    reset carries over (``RESET_CALIBRATION_SIGMA_FACTOR``); unchanged when the killed run had none yet."""
+    rows = [r for r in j.records if r.frame_index <= first_frame and r.is_keyframe
+            and np.isfinite(r.wheel_scale) and np.isfinite(r.wheel_yaw_bias_per_m)]
+    if not rows:
+        return cfg
+    wc = cfg.backend.wheel_calibration
+    f = RESET_CALIBRATION_SIGMA_FACTOR
+    warm = wc.model_copy(update={"initial_scale": float(rows[-1].wheel_scale),
+                                 "initial_yaw_bias_per_m": float(rows[-1].wheel_yaw_bias_per_m),
+                                 "scale_prior_sigma": f * wc.scale_prior_sigma,
+                                 "yaw_bias_prior_sigma": f * wc.yaw_bias_prior_sigma})
+    log.info("the continuation's wheel calibration starts at the killed run's of frame %d: scale %.4f, yaw bias "
+             "%.2f mrad/m", rows[-1].frame_index, warm.initial_scale, 1000.0 * warm.initial_yaw_bias_per_m)
+    return cfg.model_copy(update={"backend": cfg.backend.model_copy(update={"wheel_calibration": warm})})
+
+
 def run_continuation(cfg: Config, sub: Sequence, seam_frame: int) -> tuple[Pipeline, RunResult]:
     """A fresh pipeline on the sub-sequence, journaling into the folder's journal as a new segment."""
     worker = BackendWorker() if cfg.run_mode is RunMode.PIPELINED else None
@@ -168,7 +188,7 @@ def resume(cfg: Config) -> RunResult:
         k0 = max(k - WARMUP_FRAMES, j.records[0].frame_index)
         log.info("resuming from frame %d (the journal's last final keyframe; run from frame %d on) to frame %d", k,
                  k0, n_total - 1)
-        pipe, cont = run_continuation(cfg, subsequence(seq, k0, n_total), k)
+        pipe, cont = run_continuation(warm_started(cfg, j, k0), subsequence(seq, k0, n_total), k)
         at_k = [i for i, r in enumerate(cont.records) if r.frame_index == k]
         if not at_k or len(cont.trajectory) <= at_k[0]:  # stopped in its warm-up: the journal's frames only
             return _write(cfg, JobReport(resumed_result(j), seq), k, pipe)
