@@ -109,31 +109,3 @@ def test_a_metric_run_is_not_rescaled():
     assert seam(base, 6, cont.records, cont.online).scale == 1.0
     assert overlap_scale(base, 6, cont.records, cont.online) == pytest.approx(2.5, rel=0.01)  # what it would fit
 
-
-def _kf_record(i: int, scale: float, bias: float) -> FrameRecord:
-    return FrameRecord(frame_index=i, timestamp=0.1 * i, n_tracked=0, n_inliers=0, n_detected=0, parallax_px=0.0,
-                       rot_comp_parallax_px=0.0, inlier_ratio=1.0, cheirality_ratio=1.0, spread=0.0, is_keyframe=True,
-                       keyframe_reason="parallax", gate="pass", backend_status="ok", n_landmarks=0,
-                       reprojection_rms_px=0.0, frontend_ms=0.0, backend_ms=0.0, wheel_scale=scale,
-                       wheel_yaw_bias_per_m=bias)
-
-
-def test_the_continuation_starts_from_the_killed_runs_wheel_calibration(tmp_path):
-    from windowvo.backend.wheel_calibration import RESET_CALIBRATION_SIGMA_FACTOR, WheelCalibrationStates
-    from windowvo.config import config_from_dict
-    from windowvo.runtime.resume import warm_started
-
-    cfg = config_from_dict({"sequence": str(tmp_path), "output": str(tmp_path / "out")})
-    j = JournalContents(header={}, records=[_kf_record(0, float("nan"), float("nan")), _kf_record(5, 1.021, 0.004),
-                                            _kf_record(9, 1.025, 0.006)])
-    warm = warm_started(cfg, j, first_frame=7).backend.wheel_calibration
-    wc = cfg.backend.wheel_calibration
-    # The last keyframe at or before the continuation's first frame (5, not 9), with a reset's narrower prior.
-    assert (warm.initial_scale, warm.initial_yaw_bias_per_m) == (1.021, 0.004)
-    assert warm.scale_prior_sigma == pytest.approx(RESET_CALIBRATION_SIGMA_FACTOR * wc.scale_prior_sigma)
-    assert warm.yaw_bias_prior_sigma == pytest.approx(RESET_CALIBRATION_SIGMA_FACTOR * wc.yaw_bias_prior_sigma)
-    # ... which the back end's calibration states start from.
-    states = WheelCalibrationStates(warm_started(cfg, j, 7).backend, use_odometry=True)
-    assert (states.calib.scale, states.calib.yaw_bias_per_m) == (1.021, 0.004)
-    # No calibration in the journal before the first frame: the config as it was.
-    assert warm_started(cfg, j, first_frame=3) is cfg

@@ -70,3 +70,14 @@ def test_a_reset_restarts_the_chain_from_the_last_estimate():
     states.restart_here(graph, values, stamps, 13)  # from this keyframe alone: the full prior
     assert states.start == 13 and states.key == 13 and graph.size() == 1
     assert np.allclose(graph.at(0).noiseModel().sigmas(), [wc.scale_prior_sigma, wc.yaw_bias_prior_sigma])
+
+
+def test_the_calibration_starts_from_the_configured_initial_values():
+    from windowvo.backend.wheel_calibration import WheelCalibrationStates
+    from windowvo.config import BackendConfig
+
+    cfg = BackendConfig.model_validate({"wheel_calibration": {"initial_scale": 1.021, "initial_yaw_bias_per_m": 0.004}})
+    states = WheelCalibrationStates(cfg, use_odometry=True)
+    assert (states.calib.scale, states.calib.yaw_bias_per_m) == (1.021, 0.004)
+    default = WheelCalibrationStates(BackendConfig(), use_odometry=True)
+    assert (default.calib.scale, default.calib.yaw_bias_per_m) == (1.0, 0.0)

@@ -3,12 +3,17 @@
 What it does: it reads the run's journal (``journal.jsonl``, see ``runtime/journal.py``) and keeps every frame up
 to the last keyframe that had left the fixed-lag window (its last *final* keyframe, frame ``k``): those frames
 have exactly the poses the uninterrupted run ends with (the frames between two final keyframes placed as the
-finished run places them), and their ``stats.csv`` rows. It then runs a fresh pipeline on the rest of the sequence,
-starting ``WARMUP_FRAMES`` before ``k`` so that its back end has learnt the wheel calibration and the floor by
-then (frames ``k - WARMUP_FRAMES .. end``: :func:`windowvo.io.sequence.subsequence`, the wheel odometry from that
-frame's time on, the same config and run mode), and places its frames after ``k`` in the killed run's world:
-``T_world_base(j) = T_world_base_journal(k) @ T_start_base(j)`` with ``T_start_base(j)`` the continuation's pose
-of frame ``j`` relative to its own (smoothed) pose of frame ``k`` (:class:`~windowvo.runtime.journal.Seam`). With wheels or the floor the continuation is metric by itself; a
+finished run places them), and their ``stats.csv`` rows. It then runs the sequence again from the killed run's
+first frame (:func:`windowvo.io.sequence.subsequence`, the same config and run mode) and keeps its frames after
+``k``. Runs are deterministic (the pipelined mode bit for bit the sequential one), so the frames up to ``k`` come
+out as the killed run had them and the result is the uninterrupted run's, bit for bit: resuming costs the time of
+the frames already done, and gives the run that was not killed. The replay is checked against the journal (the
+final keyframes' poses): a difference (the code, the config or the machine changed since the kill) is a warning
+and ``replay_max_difference_m`` in ``summary.json``; the continuation is then placed in the killed run's world at
+``k``: ``T_world_base(j) = T_world_base_journal(k) @ T_start_base(j)`` with ``T_start_base(j)`` its pose of frame
+``j`` relative to its own pose of frame ``k`` (:class:`~windowvo.runtime.journal.Seam`). A continuation from a
+later frame (a shorter replay) was measured: a fresh back end lands within +-10-20% of the uninterrupted run's
+ATE, not within 5% (docs/robustness.md). With wheels or the floor the continuation is metric by itself; a
 monocular run with neither has an arbitrary scale per run, so the continuation's translations are scaled by the
 least-squares fit of its keyframe positions to the killed run's causal keyframe positions over the frames both
 ran (the killed run's journaled frames after ``k``; :func:`~windowvo.runtime.journal.overlap_scale`).
@@ -36,12 +41,11 @@ from pathlib import Path
 import numpy as np
 
 from ..backend.report import ScaleReport
-from ..backend.wheel_calibration import RESET_CALIBRATION_SIGMA_FACTOR
 from ..config import Config, RunMode
 from ..errors import WindowVOError
 from ..io.sequence import Sequence, subsequence
 from ..io.trajectory import Trajectory
-from ..types import ScaleSource
+from ..types import FrameRecord, ScaleSource
 from . import stop
 from .job import JobReport, evaluate_report, load_sequence
 from .journal import (
@@ -61,11 +65,8 @@ from .pipeline import Pipeline, RunResult
 
 log = logging.getLogger("windowvo")
 
-# The continuation starts this many frames before the seam (frames the killed run had finished, run again and left
-# out of the outputs): by the seam its back end has learnt what the killed run's had (the wheel calibration, the
-# floor). Measured on a rendered 1801-frame loop with biased wheels (scripts/kill_resume_check.py): without it the
-# resumed ATE was up to 1.44x the uninterrupted run's.
-WARMUP_FRAMES = 200
+# A replayed final keyframe further than this from the journal's pose means the replay is not the killed run's.
+REPLAY_TOLERANCE_M = 1e-6
 
 
 def resumed_result(j: JournalContents, interrupted: bool = True) -> RunResult:
@@ -139,23 +140,13 @@ def merged_result(j: JournalContents, sm: Seam, cont: RunResult) -> RunResult:
         wheel_time_offset=cont.wheel_time_offset)
 
 
-def warm_started(cfg: Config, j: JournalContents, first_frame: int) -> Config:
-    """The config of a continuation from ``first_frame``: its wheel calibration starts where the killed run's
-    was there (the last keyframe's estimate at or before it in the journal), with the prior sigmas a window
-    reset carries over (``RESET_CALIBRATION_SIGMA_FACTOR``); unchanged when the killed run had none yet."""
-    rows = [r for r in j.records if r.frame_index <= first_frame and r.is_keyframe
-            and np.isfinite(r.wheel_scale) and np.isfinite(r.wheel_yaw_bias_per_m)]
-    if not rows:
-        return cfg
-    wc = cfg.backend.wheel_calibration
-    f = RESET_CALIBRATION_SIGMA_FACTOR
-    warm = wc.model_copy(update={"initial_scale": float(rows[-1].wheel_scale),
-                                 "initial_yaw_bias_per_m": float(rows[-1].wheel_yaw_bias_per_m),
-                                 "scale_prior_sigma": f * wc.scale_prior_sigma,
-                                 "yaw_bias_prior_sigma": f * wc.yaw_bias_prior_sigma})
-    log.info("the continuation's wheel calibration starts at the killed run's of frame %d: scale %.4f, yaw bias "
-             "%.2f mrad/m", rows[-1].frame_index, warm.initial_scale, 1000.0 * warm.initial_yaw_bias_per_m)
-    return cfg.model_copy(update={"backend": cfg.backend.model_copy(update={"wheel_calibration": warm})})
+def replay_difference_m(j: JournalContents, records: list[FrameRecord], traj: Trajectory, seam_frame: int) -> float:
+    """Largest distance between the journal's final keyframe poses up to ``seam_frame`` and the replay's poses of
+    the same frames (0 when the replay is the killed run, as it is with the same code, config and machine)."""
+    row = {r.frame_index: i for i, r in enumerate(records)}
+    diffs = [float(np.linalg.norm(T[:3, 3] - traj.T_world_base[row[f]][:3, 3]))
+             for f, (_, T) in j.final_keyframes.items() if f <= seam_frame and f in row and row[f] < len(traj)]
+    return max(diffs, default=0.0)
 
 
 def run_continuation(cfg: Config, sub: Sequence, seam_frame: int) -> tuple[Pipeline, RunResult]:
@@ -185,10 +176,10 @@ def resume(cfg: Config) -> RunResult:
         n_total = min(len(seq), cfg.max_frames or len(seq))
         if n_total - k < 2:  # nothing after the last final keyframe to run: the journal is the whole run
             return _write(cfg, JobReport(resumed_result(j, j.records[-1].frame_index < n_total - 1), seq), k, None)
-        k0 = max(k - WARMUP_FRAMES, j.records[0].frame_index)
-        log.info("resuming from frame %d (the journal's last final keyframe; run from frame %d on) to frame %d", k,
-                 k0, n_total - 1)
-        pipe, cont = run_continuation(warm_started(cfg, j, k0), subsequence(seq, k0, n_total), k)
+        k0 = j.records[0].frame_index
+        log.info("resuming: the run again from frame %d (deterministic: the frames up to %d, the journal's last final "
+                 "keyframe, as the killed run had them) to frame %d", k0, k, n_total - 1)
+        pipe, cont = run_continuation(cfg, subsequence(seq, k0, n_total), k)
         at_k = [i for i, r in enumerate(cont.records) if r.frame_index == k]
         if not at_k or len(cont.trajectory) <= at_k[0]:  # stopped in its warm-up: the journal's frames only
             return _write(cfg, JobReport(resumed_result(j), seq), k, pipe)
@@ -197,13 +188,19 @@ def resume(cfg: Config) -> RunResult:
         if not j.metric_cue:
             log.info("monocular run without a metric cue: the continuation scaled by %.4f (fit on the overlap)",
                      sm.scale)
+        diff = replay_difference_m(j, cont.records, cont.trajectory, k)
+        if diff > REPLAY_TOLERANCE_M:
+            log.warning("the replay is not the killed run: its keyframes up to frame %d differ by up to %.4f m (the "
+                        "code, the config or the machine changed since the kill); its frames after %d are placed "
+                        "at the killed run's pose of frame %d", k, diff, k, k)
         merged = merged_result(j, sm, cont)
         if len(merged.records) < len(j.records):  # stopped before the killed run's last frame: keep that one's
             merged = resumed_result(j)
-        return _write(cfg, JobReport(merged, seq), k, pipe)
+        return _write(cfg, JobReport(merged, seq), k, pipe, diff)
 
 
-def _write(cfg: Config, report: JobReport, k: int, pipe: Pipeline | None) -> RunResult:
+def _write(cfg: Config, report: JobReport, k: int, pipe: Pipeline | None, replay_diff_m: float | None = None
+           ) -> RunResult:
     """Write the outputs (then close the journal's segment), ``summary.json`` and the console summary."""
     stop.set_phase(stop.Phase.DEFER)  # frames are computed: from here on a signal only marks the run interrupted
     result = report.result
@@ -216,7 +213,8 @@ def _write(cfg: Config, report: JobReport, k: int, pipe: Pipeline | None) -> Run
         mark_end(cfg.output / JOURNAL_NAME, "resumed")
     report = evaluate_report(report)
     summary = summary_dict(report, cfg)
-    summary.update(resumed=True, resumed_from_frame=k)
+    summary.update(resumed=True, resumed_from_frame=k,
+                   replay_max_difference_m=None if replay_diff_m is None else round(replay_diff_m, 9))
     write_summary(summary, cfg.output)
     log.info("resumed from frame %d: %d frames in the outputs", k, result.n_frames)
     print("\n".join(summary_lines(report, summary, cfg.output)))
