@@ -236,7 +236,7 @@ class SlidingWindowBackend:
             self._reset_with(fo, odom, T_guess)
             status = BackendStatus.RECOVERED
             lap(Stage.BACKEND_ISAM2)  # a fresh smoother from the last good pose
-        out = self._output(fo, n_new, n_vis, n_ground, status)
+        out = keyframe_output(self, fo, n_new, n_vis, n_ground, status)
         if earlier is not None:
             out.metric_start, out.earlier_keyframe_poses = True, earlier
         lap(Stage.BACKEND_ESTIMATE)
@@ -454,37 +454,40 @@ class SlidingWindowBackend:
                  "trajectory so far rescaled", self.k, fo.frame_index, s)
         return {self.kf_frame[kk]: self.kf_pose[kk] for kk in range(self.window_start()) if kk in self.kf_pose}
 
-    def _output(self, fo: FrontendOutput, n_new: int, n_vis: int, n_ground: int,
-                status: BackendStatus) -> BackendOutput:
-        assert self.estimate is not None
-        ids, pts = self.lm.positions()
-        _, p_seen, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, self.k)
-        rms = reprojection_rms(reprojection_errors(self.camera, self.kf_pose[self.k], self.T_base_cam, p_seen, uv))
-        w0 = self.window_start()
-        floor, calib = self.floor, self.wheel.calib
-        fa = floor.floor_attitude
-        tilt = fa.tilt_deg() if fa.ready else (float("nan"), float("nan"))
-        return BackendOutput(
-            frame_index=fo.frame_index,
-            timestamp=fo.timestamp,
-            T_world_base=self.kf_pose[self.k].copy(),
-            keyframe_poses={self.kf_frame[kk]: self.kf_pose[kk] for kk in range(w0, self.k + 1)},
-            p_world_landmarks=pts,
-            landmark_ids=ids,
-            n_landmarks=len(ids),
-            n_new_landmarks=n_new,
-            n_vision_factors=n_vis,
-            reprojection_rms_px=rms,
-            status=status,
-            n_ground_factors=n_ground,
-            base_rocking_deg=floor.base_rocking_deg,
-            level_frame=floor.level_frame,
-            floor_tilt_x_deg=tilt[0],
-            floor_tilt_y_deg=tilt[1],
-            floor_tilt_se_deg=fa.standard_error_deg() if fa.ready else float("nan"),
-            floor_normal_learnt=floor.floor_normal_learnt,
-            cue_disagreement=float("nan") if floor.last_agreement is None else floor.last_agreement.disagreement,
-            cues_agree=None if floor.last_agreement is None else floor.last_agreement.agree,
-            wheel_scale=calib.scale if self.calibrate else float("nan"),
-            wheel_yaw_bias_per_m=calib.yaw_bias_per_m if self.calibrate else float("nan"),
-        )
+
+def keyframe_output(be: SlidingWindowBackend, fo: FrontendOutput, n_new: int, n_vis: int, n_ground: int,
+                    status: BackendStatus) -> BackendOutput:
+    """What the back end hands on after keyframe ``be.k``: the window's poses, the landmarks, the counts, and the
+    floor's and the wheel calibration's state."""
+    assert be.estimate is not None
+    ids, pts = be.lm.positions()
+    _, p_seen, uv = be.lm.seen_now(fo.track_ids, fo.pixels_undistorted, be.k)
+    rms = reprojection_rms(reprojection_errors(be.camera, be.kf_pose[be.k], be.T_base_cam, p_seen, uv))
+    w0 = be.window_start()
+    floor, calib = be.floor, be.wheel.calib
+    fa = floor.floor_attitude
+    tilt = fa.tilt_deg() if fa.ready else (float("nan"), float("nan"))
+    return BackendOutput(
+        frame_index=fo.frame_index,
+        timestamp=fo.timestamp,
+        T_world_base=be.kf_pose[be.k].copy(),
+        keyframe_poses={be.kf_frame[kk]: be.kf_pose[kk] for kk in range(w0, be.k + 1)},
+        p_world_landmarks=pts,
+        landmark_ids=ids,
+        n_landmarks=len(ids),
+        n_new_landmarks=n_new,
+        n_vision_factors=n_vis,
+        reprojection_rms_px=rms,
+        status=status,
+        n_ground_factors=n_ground,
+        base_rocking_deg=floor.base_rocking_deg,
+        level_frame=floor.level_frame,
+        floor_tilt_x_deg=tilt[0],
+        floor_tilt_y_deg=tilt[1],
+        floor_tilt_se_deg=fa.standard_error_deg() if fa.ready else float("nan"),
+        floor_normal_learnt=floor.floor_normal_learnt,
+        cue_disagreement=float("nan") if floor.last_agreement is None else floor.last_agreement.disagreement,
+        cues_agree=None if floor.last_agreement is None else floor.last_agreement.agree,
+        wheel_scale=calib.scale if be.calibrate else float("nan"),
+        wheel_yaw_bias_per_m=calib.yaw_bias_per_m if be.calibrate else float("nan"),
+    )
