@@ -123,3 +123,13 @@ def test_other_threads_go_to_their_own_lists_and_one_recorder_at_a_time():
     assert set(times.frames[0].ms) == {Stage.DECODE}
     assert len(times.other_threads_ms[Stage.RECORDING_THREAD]) == 1
     assert stage_timer.section(Stage.DECODE) is stage_timer.section(Stage.GAIN)  # off again
+
+
+def test_the_shares_are_of_every_thread_and_add_up_to_the_whole(timed_run):
+    res = budget(timed_run[0], "tiny", "640x480")
+    for untimed in (None, 0.25 * res["run_thread_ms"]):
+        r = res if untimed is None else {**res, "untimed_threads_ms": untimed}
+        rows = [line for line in case_table(r).splitlines()[2:] if line.rstrip(" |").endswith("%")]
+        shares = [float(line.rstrip(" |").rsplit("|", 1)[1].strip().rstrip("%")) for line in rows]
+        assert len(rows) == len(r["frame_rows"]) + len(r["run_rows"]) + (untimed is not None)
+        assert sum(shares) == pytest.approx(100.0, abs=0.05 * len(shares) + 1e-9)
