@@ -12,6 +12,8 @@ everything the run's thread does for it (decoding, the front end, the back end a
 for the recording, the journal) falls in it. The stages are exclusive (none is timed inside another), so a
 frame's stages sum to at most its total; the rest is bookkeeping nobody times (journal, wheel buffer).
 Before the first frame (loading, set-up) and after the last (outputs, closing the recording) are the run's.
+Frames are delimited only where the run's thread decodes them (the sequential run mode); in the pipelined
+mode the decoding thread and the back-end process time nothing, so the budget is the sequential mode's.
 """
 
 from __future__ import annotations
