@@ -53,6 +53,7 @@ from ..camera import CameraModel
 from ..config import BackendConfig
 from ..errors import WindowVOError
 from ..geometry import inv_T, make_T
+from ..runtime.stage_timer import Laps, Stage, mark_keyframe
 from ..types import (
     BackendOutput,
     BackendStatus,
@@ -203,6 +204,8 @@ class SlidingWindowBackend:
     # ------------------------------------------------------------------ main entry
     def add_keyframe(self, fo: FrontendOutput, odom: OdometryStep | None) -> BackendOutput:
         t0 = time.perf_counter()
+        lap = Laps()
+        mark_keyframe()
         self.k += 1
         k = self.k
         self.kf_frame[k] = fo.frame_index
@@ -212,25 +215,31 @@ class SlidingWindowBackend:
         # triangulation angle, so low overall parallax (distant scenes, turning) does not block it.
         allow_new = fo.gate in (GateOutcome.PASS, GateOutcome.LOW_PARALLAX) or k == 1
         T_guess = self._initial_guess(fo, odom)
+        lap(Stage.BACKEND_GUESS)
         n_new = n_vis = n_ground = 0
         earlier: dict[int, np.ndarray] | None = None
         try:
-            n_new, n_vis, n_ground = self._update(fo, odom, T_guess, fo.vision_ok, allow_new)
+            n_new, n_vis, n_ground = self._update(fo, odom, T_guess, fo.vision_ok, allow_new)  # times its own steps
+            lap.skip()
             if k == 0:
                 status = BackendStatus.INIT
             elif not fo.vision_ok:
                 status = BackendStatus.ODOMETRY_FALLBACK
             elif self.floor.waiting_for_floor() and k >= 2:
                 earlier = self._late_metric_start(fo)
+            lap(Stage.BACKEND_FLOOR)
         except RuntimeError as err:
+            lap.skip()
             msg = " ".join(str(err).split())[:300]
             log.warning("keyframe %d (frame %d): smoother failed (%s); resetting the window from the last good pose",
                         k, fo.frame_index, msg)
             self._reset_with(fo, odom, T_guess)
             status = BackendStatus.RECOVERED
-        out = self._output(fo, n_new, n_vis, n_ground, status)
+            lap(Stage.BACKEND_ISAM2)  # a fresh smoother from the last good pose
+        out = keyframe_output(self, fo, n_new, n_vis, n_ground, status)
         if earlier is not None:
             out.metric_start, out.earlier_keyframe_poses = True, earlier
+        lap(Stage.BACKEND_ESTIMATE)
         out.backend_ms = (time.perf_counter() - t0) * 1000.0
         return out
 
@@ -281,9 +290,11 @@ class SlidingWindowBackend:
         factors), one smoother update, then the landmark bookkeeping. Returns (new landmarks, projection
         factors, ground factors)."""
         k = self.k
+        lap = Laps()
         self.wheel.start_with_floor(k, self.floor.n_ground_keyframes)
         if self.floor.judge_mount(k, self.calibrate):
             self.wheel.release_scale()
+        lap(Stage.BACKEND_FLOOR)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         stamps: dict[int, float] = {}
@@ -295,8 +306,10 @@ class SlidingWindowBackend:
         # Per factor: (track id, keyframe, is a native ground factor), or None.
         owners: list[tuple[int, int, bool] | None] = [None] * graph.size()
         w0 = self.window_start(k)
+        lap(Stage.BACKEND_FACTORS)
         if self.floor.retie_pending:
             remove = remove + self.floor.retie_window_floor(k, w0, graph, owners)
+        lap(Stage.BACKEND_FLOOR)
         new_lms: list[int] = []
         n_vis = n_ground = 0
         if use_vision:
@@ -304,18 +317,25 @@ class SlidingWindowBackend:
             new_lms, n_born_vis, n_ground = self.vision.new_landmark_factors(k, w0, graph, values, stamps, owners,
                                                                              candidates, T_guess)
             n_vis += n_born_vis
-        idx = self._solve(graph, values, stamps, remove, new_lms)
+        lap(Stage.BACKEND_FACTORS)
+        idx = self._solve(graph, values, stamps, remove, new_lms)  # times the update and the estimate itself
+        lap.skip()
         self.lm.record_factors(owners, idx)
         self.floor.count_ground_factors(n_ground)
         self._refresh_states()
+        lap(Stage.BACKEND_ESTIMATE)
         if k > 0:
             step = np.linalg.norm(self.kf_pose[k][:3, 3] - self.kf_pose[k - 1][:3, 3])
             self.floor.check_cues(k, odom.distance_m if self._odometry_usable(odom) else None, float(step))
+        lap(Stage.BACKEND_FLOOR)
         self.lm.prune(w0)
+        lap(Stage.BACKEND_ESTIMATE)
         self.floor.untie_off_floor(w0)
+        lap(Stage.BACKEND_FLOOR)
         ids, p_world, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, k)
         errs = reprojection_errors(self.camera, self.kf_pose[k], self.T_base_cam, p_world, uv)
         self.lm.check_outliers(ids, errs, self.window_start(k + 1))
+        lap(Stage.BACKEND_ESTIMATE)
         return len(new_lms), n_vis, n_ground
 
     def _pose_factors(self, graph, values, stamps: dict[int, float], odom: OdometryStep | None, T_guess) -> None:
@@ -335,11 +355,14 @@ class SlidingWindowBackend:
         ts_map = gtsam.FixedLagSmootherKeyTimestampMap()
         for key, t in stamps.items():
             ts_map.insert((key, t))
+        lap = Laps()
         try:
             idx = self.submit(graph, values, ts_map, remove)
             for _ in range(cfg.extra_iterations if k > 2 else 2):
                 self.smoother.update()  # more Gauss-Newton steps (iSAM2 takes one per update)
+            lap(Stage.BACKEND_ISAM2)
             self.estimate = self.smoother.calculateEstimate()
+            lap(Stage.BACKEND_ESTIMATE)
         except RuntimeError:
             # Undo the bookkeeping of this update before the caller resets the window.
             self.lm.forget(new_lms)
@@ -431,37 +454,40 @@ class SlidingWindowBackend:
                  "trajectory so far rescaled", self.k, fo.frame_index, s)
         return {self.kf_frame[kk]: self.kf_pose[kk] for kk in range(self.window_start()) if kk in self.kf_pose}
 
-    def _output(self, fo: FrontendOutput, n_new: int, n_vis: int, n_ground: int,
-                status: BackendStatus) -> BackendOutput:
-        assert self.estimate is not None
-        ids, pts = self.lm.positions()
-        _, p_seen, uv = self.lm.seen_now(fo.track_ids, fo.pixels_undistorted, self.k)
-        rms = reprojection_rms(reprojection_errors(self.camera, self.kf_pose[self.k], self.T_base_cam, p_seen, uv))
-        w0 = self.window_start()
-        floor, calib = self.floor, self.wheel.calib
-        fa = floor.floor_attitude
-        tilt = fa.tilt_deg() if fa.ready else (float("nan"), float("nan"))
-        return BackendOutput(
-            frame_index=fo.frame_index,
-            timestamp=fo.timestamp,
-            T_world_base=self.kf_pose[self.k].copy(),
-            keyframe_poses={self.kf_frame[kk]: self.kf_pose[kk] for kk in range(w0, self.k + 1)},
-            p_world_landmarks=pts,
-            landmark_ids=ids,
-            n_landmarks=len(ids),
-            n_new_landmarks=n_new,
-            n_vision_factors=n_vis,
-            reprojection_rms_px=rms,
-            status=status,
-            n_ground_factors=n_ground,
-            base_rocking_deg=floor.base_rocking_deg,
-            level_frame=floor.level_frame,
-            floor_tilt_x_deg=tilt[0],
-            floor_tilt_y_deg=tilt[1],
-            floor_tilt_se_deg=fa.standard_error_deg() if fa.ready else float("nan"),
-            floor_normal_learnt=floor.floor_normal_learnt,
-            cue_disagreement=float("nan") if floor.last_agreement is None else floor.last_agreement.disagreement,
-            cues_agree=None if floor.last_agreement is None else floor.last_agreement.agree,
-            wheel_scale=calib.scale if self.calibrate else float("nan"),
-            wheel_yaw_bias_per_m=calib.yaw_bias_per_m if self.calibrate else float("nan"),
-        )
+
+def keyframe_output(be: SlidingWindowBackend, fo: FrontendOutput, n_new: int, n_vis: int, n_ground: int,
+                    status: BackendStatus) -> BackendOutput:
+    """What the back end hands on after keyframe ``be.k``: the window's poses, the landmarks, the counts, and the
+    floor's and the wheel calibration's state."""
+    assert be.estimate is not None
+    ids, pts = be.lm.positions()
+    _, p_seen, uv = be.lm.seen_now(fo.track_ids, fo.pixels_undistorted, be.k)
+    rms = reprojection_rms(reprojection_errors(be.camera, be.kf_pose[be.k], be.T_base_cam, p_seen, uv))
+    w0 = be.window_start()
+    floor, calib = be.floor, be.wheel.calib
+    fa = floor.floor_attitude
+    tilt = fa.tilt_deg() if fa.ready else (float("nan"), float("nan"))
+    return BackendOutput(
+        frame_index=fo.frame_index,
+        timestamp=fo.timestamp,
+        T_world_base=be.kf_pose[be.k].copy(),
+        keyframe_poses={be.kf_frame[kk]: be.kf_pose[kk] for kk in range(w0, be.k + 1)},
+        p_world_landmarks=pts,
+        landmark_ids=ids,
+        n_landmarks=len(ids),
+        n_new_landmarks=n_new,
+        n_vision_factors=n_vis,
+        reprojection_rms_px=rms,
+        status=status,
+        n_ground_factors=n_ground,
+        base_rocking_deg=floor.base_rocking_deg,
+        level_frame=floor.level_frame,
+        floor_tilt_x_deg=tilt[0],
+        floor_tilt_y_deg=tilt[1],
+        floor_tilt_se_deg=fa.standard_error_deg() if fa.ready else float("nan"),
+        floor_normal_learnt=floor.floor_normal_learnt,
+        cue_disagreement=float("nan") if floor.last_agreement is None else floor.last_agreement.disagreement,
+        cues_agree=None if floor.last_agreement is None else floor.last_agreement.agree,
+        wheel_scale=calib.scale if be.calibrate else float("nan"),
+        wheel_yaw_bias_per_m=calib.yaw_bias_per_m if be.calibrate else float("nan"),
+    )

@@ -34,8 +34,9 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m windowvo.bench", description=first_line(_tools_bench.__doc__),
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog=plain_help("\n".join((_tools_bench.__doc__ or "").splitlines()[1:])))
-    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun", "memory", "bag", "modes", "scale"],
-                   help="scale: the scale suite (fused cues against each cue alone, windowvo/tools/scale_suite.py)")
+    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun", "memory", "bag", "modes", "scale", "stages"],
+                   help="scale: the scale suite (fused cues against each cue alone, windowvo/tools/scale_suite.py); "
+                        "stages: the per-stage CPU budget (windowvo/tools/stage_budget.py)")
     p.add_argument("--out", default="windowvo_output/bench", help="outputs, JSON and plots")
     p.add_argument("--cache", default="windowvo_output/bench_cache", help="rendered sequences (reused)")
     p.add_argument("--duration", type=float, default=30.0, help="seconds of each synthetic sequence")
@@ -145,6 +146,15 @@ def _scale(a, out: Path, cache: Path) -> dict:
     return {"rows": rows, "summary": s}
 
 
+def _stages(cache: Path, out: Path) -> dict:
+    from ..tools import stage_budget
+
+    res = stage_budget.bench_stages(cache, out)
+    print("## Per-stage CPU budget (thread CPU time, sequential mode, recording on)\n")
+    print(stage_budget.stages_text(res))
+    return res
+
+
 def _bag(cache: Path, out: Path) -> dict:
     bag_res = bench_bag(cache, out)
     print("## ROS bag input (frames streamed)\n\n| bag | MB | frames | keyframes | fps | peak RSS MB |\n"
@@ -170,7 +180,7 @@ def main(argv=None) -> int:
     suites = {"sequences": lambda: _sequences(a, out, cache), "frontend": lambda: _frontend(cache),
               "backend": lambda: _backend(a.backend_keyframes), "rerun": lambda: _rerun(cache, out),
               "modes": lambda: _modes(cache, out), "memory": lambda: _memory(cache, out), "bag": lambda: _bag(cache, out),
-              "scale": lambda: _scale(a, out, cache)}
+              "scale": lambda: _scale(a, out, cache), "stages": lambda: _stages(cache, out)}
     results: dict = {name: run() for name, run in suites.items() if name in a.suite}
     (out / "bench.json").write_text(json.dumps(results, indent=2, default=float))
     print(f"results: {out / 'bench.json'}")

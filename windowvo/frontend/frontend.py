@@ -25,6 +25,7 @@ import numpy as np
 
 from ..camera import CameraModel
 from ..config import FrontendConfig, GateConfig, KeyframeConfig, TrackerKind
+from ..runtime.stage_timer import Laps, Stage, section
 from ..types import Frame, FrontendOutput, KeyframeReason
 from .gates import MIN_COMMON_TRACKS, apply_gates, keyframe_reason
 from .tracker import KLTTracker, ORBTracker, cell_counts
@@ -175,6 +176,7 @@ class Frontend:
         t0 = time.perf_counter()
         tracks, xn = self._track(frame)
         tracks, xn, vs_kf = self._against_keyframe(tracks, xn)
+        lap = Laps()
         out_pixels, parallax, two_view, kf_pair, n_common = (vs_kf.outlier_pixels, vs_kf.parallax_px, vs_kf.two_view,
                                                              vs_kf.kf_pair, vs_kf.n_common)
         out = FrontendOutput(
@@ -190,6 +192,7 @@ class Frontend:
             spread=self.spread(tracks.pixels),
             pixel_sigma_scale=pixel_sigma_scale(self.camera, tracks.pixels),
         )
+        lap(Stage.UNDISTORTION)  # mostly the undistorted pixels and their noise scales
         if two_view is not None:
             out.inlier_ratio = float(two_view.inlier_mask.mean())
         reason = (KeyframeReason.FIRST if self.kf_ids is None
@@ -207,6 +210,7 @@ class Frontend:
             self.kf_ids = out.track_ids.copy()
             self.kf_xn = xn.copy()
             self.kf_time = frame.timestamp
+        lap(Stage.KEYFRAME)
         out.frontend_ms = (time.perf_counter() - t0) * 1000.0
         return out
 
@@ -214,11 +218,13 @@ class Frontend:
         """The frame's tracks (after the gain normalisation) and their normalised rays; tracks past the
         field-of-view bound end here."""
         image = frame.image
-        if self.clahe is not None:
-            image = self.clahe.apply(image)
-        elif self.gain is not None:
-            image = self.gain(image)
-        tracks = self.tracker.track(image, self._mask(frame))
+        with section(Stage.GAIN):
+            if self.clahe is not None:
+                image = self.clahe.apply(image)
+            elif self.gain is not None:
+                image = self.gain(image)
+        tracks = self.tracker.track(image, self._mask(frame))  # times its tracking and detection itself
+        lap = Laps()
         xn = self.camera.undistort_normalized(tracks.pixels)
         # The mask bounds the field of view to whole pixels; sub-pixel refinement and KLT can leave a
         # track just past its edge. End every track beyond the bound (a ray at 90 degrees or more
@@ -229,12 +235,14 @@ class Frontend:
             self.tracker.drop(tracks.ids[beyond])
             tracks.ids, tracks.pixels, tracks.ages = tracks.ids[~beyond], tracks.pixels[~beyond], tracks.ages[~beyond]
             xn = xn[~beyond]
+        lap(Stage.UNDISTORTION)
         return tracks, xn
 
     def _against_keyframe(self, tracks, xn: np.ndarray):
         """Parallax and essential-matrix RANSAC of the tracks shared with the last keyframe; RANSAC's outliers
         end here. Returns the surviving tracks, their rays and what the comparison found."""
         vs = VersusKeyframe()
+        lap = Laps()
         if self.kf_ids is None or self.kf_xn is None or not len(tracks.ids):
             return tracks, xn, vs
         common, i_cur, i_kf = np.intersect1d(tracks.ids, self.kf_ids, return_indices=True)
@@ -243,6 +251,7 @@ class Frontend:
         if vs.n_common:
             d = (xn[i_cur] - kf_xn[i_kf]) * self.focal
             vs.parallax_px = float(np.median(np.linalg.norm(d, axis=1)))
+        lap(Stage.KEYFRAME)  # the parallax the keyframe decision judges
         if vs.n_common >= MIN_COMMON_TRACKS and vs.parallax_px > 0.5:
             vs.two_view = essential_ransac(
                 kf_xn[i_kf], xn[i_cur], self.focal, self.cfg.ransac_threshold_px, self.cfg.ransac_confidence
@@ -256,4 +265,5 @@ class Frontend:
                 keep = ~bad
                 tracks.ids, tracks.pixels, tracks.ages = tracks.ids[keep], tracks.pixels[keep], tracks.ages[keep]
                 xn = xn[keep]
+            lap(Stage.RANSAC)
         return tracks, xn, vs

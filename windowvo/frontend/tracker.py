@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from ..config import DetectionOrder, FrontendConfig
+from ..runtime.stage_timer import Laps, Stage
 
 
 @dataclass
@@ -165,6 +166,7 @@ class KLTTracker(_TrackStore):
 
     def track(self, image: np.ndarray, mask: np.ndarray | None = None) -> TrackSet:
         self.frame += 1
+        lap = Laps()
         h, w = image.shape[:2]
         pyr = image  # the Python binding takes images, not prebuilt pyramids
         b = self.cfg.border_px
@@ -187,8 +189,11 @@ class KLTTracker(_TrackStore):
                 ok &= mask[yi, xi] > 0
             self.ids, self.pts, self.ages = self.ids[ok], p1[ok].astype(np.float32), self.ages[ok] + 1
         self.prev_pyr = pyr
+        lap(Stage.TRACKING)
         n_new = self._detect(image, mask)
+        lap(Stage.DETECTION)
         self._hist.add(self.frame, self.ids, self.pts, self.ages)
+        lap(Stage.TRACKING)
         return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), n_new)
 
     def _grid_candidates(self, image: np.ndarray, m: np.ndarray, need: int) -> np.ndarray:
@@ -272,8 +277,10 @@ class ORBTracker(_TrackStore):
 
     def track(self, image: np.ndarray, mask: np.ndarray | None = None) -> TrackSet:
         self.frame += 1
+        lap = Laps()
         h, w = image.shape[:2]
         kps, desc = self.orb.detectAndCompute(image, mask)
+        lap(Stage.DETECTION)
         if desc is None or len(kps) == 0:
             self.ids, self.pts, self.ages, self.desc = self.ids[:0], self.pts[:0], self.ages[:0], None
             return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), 0)
@@ -296,6 +303,7 @@ class ORBTracker(_TrackStore):
                     new_ids[m.queryIdx] = self.ids[m.trainIdx]
                     new_ages[m.queryIdx] = self.ages[m.trainIdx] + 1
         matched = new_ids >= 0
+        lap(Stage.TRACKING)
         budget = max(self.cfg.max_features - int(matched.sum()), 0)
         cells = self.cfg.grid_cols * self.cfg.grid_rows
         per_cell = int(np.ceil(1.5 * self.cfg.max_features / cells))
@@ -308,4 +316,5 @@ class ORBTracker(_TrackStore):
         keep = new_ids >= 0
         self.ids, self.pts, self.ages, self.desc = new_ids[keep], pts[keep], new_ages[keep], desc[keep]
         self._hist.add(self.frame, self.ids, self.pts, self.ages)
+        lap(Stage.DETECTION)  # choosing the new tracks
         return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), n_new)

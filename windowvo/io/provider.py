@@ -18,6 +18,7 @@ import numpy as np
 
 from ..config import InputChecksConfig
 from ..errors import FrameError
+from ..runtime.stage_timer import Stage, begin_frame, end_frames, section
 from ..types import Frame
 from .sequence import Sequence
 
@@ -67,13 +68,19 @@ class DataProvider:
         return m
 
     def _images(self) -> Iterator[tuple[int, np.ndarray | FrameError]]:
-        """Decoded frames in order: here, or from a decoding thread running ``prefetch`` frames ahead."""
+        """Decoded frames in order: here, or from a decoding thread running ``prefetch`` frames ahead (a frame
+        decoded here starts that frame's stage times, ``runtime/stage_timer.py``)."""
         if self.prefetch <= 0:
             for i in range(self.n):
+                begin_frame(i)
                 try:
-                    yield i, self.seq.read_image(i)
+                    with section(Stage.DECODE):
+                        img = self.seq.read_image(i)
                 except FrameError as err:
                     yield i, err
+                    continue
+                yield i, img
+            end_frames()
             return
         q: queue.Queue = queue.Queue(maxsize=self.prefetch)
         stop = threading.Event()
@@ -121,12 +128,17 @@ class DataProvider:
                 yield SkippedFrame(idx, t, str(img_or_err))
                 continue
             img = img_or_err
-            mean = float(cv2.mean(img)[0])  # OpenCV's: a tenth of numpy's time on a 640x480 frame
-            if mean < self.checks.black_frame_mean:
+            with section(Stage.INPUT_CHECKS):
+                mean = float(cv2.mean(img)[0])  # OpenCV's: a tenth of numpy's time on a 640x480 frame
+                black = mean < self.checks.black_frame_mean
+                duplicate = not black and self._prev_img is not None and np.array_equal(img, self._prev_img)
+            if black:
                 yield SkippedFrame(idx, t, f"frame {idx}: black frame (mean {mean:.1f})")
                 continue
-            if self._prev_img is not None and np.array_equal(img, self._prev_img):
+            if duplicate:
                 yield SkippedFrame(idx, t, f"frame {idx}: exact duplicate of the previous frame")
                 continue
             self._prev_img = img
-            yield Frame(idx, t, img, self._mask(i))
+            with section(Stage.DECODE):
+                mask = self._mask(i)
+            yield Frame(idx, t, img, mask)

@@ -18,6 +18,7 @@ from ..config import Config, save_config
 from ..io.trajectory import write_tum
 from ..types import FrameRecord
 from .pipeline import ONLINE_HEADER, RunResult
+from .stage_timer import Stage, section
 
 if TYPE_CHECKING:  # pragma: no cover
     from .job import JobReport
@@ -26,6 +27,12 @@ log = logging.getLogger("windowvo")
 
 
 def write_outputs(cfg: Config, result: RunResult, out: Path) -> None:
+    """The trajectories, ``stats.csv`` and the resolved config."""
+    with section(Stage.OUTPUTS):
+        _write_outputs(cfg, result, out)
+
+
+def _write_outputs(cfg: Config, result: RunResult, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     header = "T_world_base, world = base at the first frame (TUM: t tx ty tz qx qy qz qw)"
     if not result.metric:
@@ -158,9 +165,10 @@ def summary_dict(report: JobReport, cfg: Config) -> dict:
 
 def write_summary(summary: dict, out: Path) -> None:
     """``summary.json``, atomically (temporary file, then rename): a stop while writing never leaves half of it."""
-    tmp = out / "summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2))
-    os.replace(tmp, out / "summary.json")
+    with section(Stage.OUTPUTS):
+        tmp = out / "summary.json.tmp"
+        tmp.write_text(json.dumps(summary, indent=2))
+        os.replace(tmp, out / "summary.json")
 
 
 def _scale_line(r: RunResult, summary: dict) -> str:

@@ -20,6 +20,10 @@ Suites:
 * ``memory``: peak RSS of a whole run over 500 frames and over 5,000 frames (rendered once).
 * ``bag``: peak RSS of a run on a ROS bag (mcap) of a rendered loop and on a bag 10 times as
   large (frames are streamed from the bag, so memory should stay flat).
+* ``stages``: the per-stage CPU budget (decode, gain normalisation, tracking, detection, undistortion,
+  RANSAC, keyframe decision, each back-end step, recording, outputs) per frame and per keyframe, on a
+  640x480 loop and a KITTI-size sequence, and the start-up (``windowvo/tools/stage_budget.py``; also
+  written to ``stages/stages.json``).
 
 Each sequence runs in its own process (``--jobs N`` runs N at once) so peak RSS is per run.
 ``--set KEY=VALUE`` (repeatable) changes the config of every windowvo run of the ``sequences``

@@ -40,6 +40,7 @@ import rerun.blueprint as rrb
 
 from ..config import Config
 from ..geometry import quat_from_R
+from ..runtime.stage_timer import Stage, section
 from ..types import BackendStatus, Frame, FrameEstimate, FrontendOutput, GateOutcome
 from .opening import close_stream, open_sink
 from .sinks import CLOSE_TIMEOUT_S, FLUSH_TIMEOUT_S, SinkFailed, SinkKind, bounded, check_disk, remove_partial
@@ -323,6 +324,10 @@ class RerunLogger:
     waits without bound, and a sink that fails says so in one warning line (``self.warning``)."""
 
     def __init__(self, cfg: Config, seq: Sequence, recording_path: Path | None = None):
+        with section(Stage.RECORDING):
+            self._open(cfg, seq, recording_path)
+
+    def _open(self, cfg: Config, seq: Sequence, recording_path: Path | None) -> None:
         t_start = time.perf_counter()
         self.cfg = cfg
         self.seq = seq
@@ -402,7 +407,8 @@ class RerunLogger:
                 fn, args = item
                 t_start = time.perf_counter()
                 if not self._failed:
-                    fn(*args)
+                    with section(Stage.RECORDING_THREAD):
+                        fn(*args)
                 self.worker_s += time.perf_counter() - t_start
             except Exception as err:  # the viewer must never stop the run
                 self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: logging failed ({type(err).__name__}: {err}); "
@@ -414,7 +420,8 @@ class RerunLogger:
     def _submit(self, fn, *args) -> None:
         t_start = time.perf_counter()
         if self._worker.is_alive():
-            self._queue.put((fn, args))
+            with section(Stage.RECORDING):
+                self._queue.put((fn, args))
         self.busy_s += time.perf_counter() - t_start
 
     # ------------------------------------------------------------------ recording properties
@@ -617,7 +624,8 @@ class RerunLogger:
         if self._worker.is_alive():
             self._warn(f"viz.rerun={self.cfg.viz.rerun.value}: the recording's logging thread was still busy after "
                        f"{WORKER_JOIN_S:.0f} s; the end of the run is not recorded")
-        self.close()
+        with section(Stage.RECORDING):  # flushing and closing the sink
+            self.close()
 
     def close(self) -> None:
         """Flush and close the sink, each step bounded in time (idempotent; ``finish`` calls it). A live
