@@ -49,3 +49,33 @@ def test_the_mount_judgement_switches_once_to_the_learnt_normal(camera, mode):
         return
     assert fm.retie_pending and fm.mount_normal_used
     assert n is not None and np.degrees(np.arccos(np.clip(n @ tilted, -1, 1))) < 1e-6
+
+
+def test_a_keyframes_floor_points_share_one_error_when_asked(camera):
+    """sigma_common_fraction: n points of a keyframe tell its floor's height to sqrt(own^2 / n + common^2), never
+    better than the common part; the robust threshold stays at the point's own sigma (a kerb is still an outlier)."""
+    import gtsam
+
+    from windowvo.backend import factors as fac
+
+    indep = _model(camera)
+    shared = _model(camera, sigma_common_fraction=0.015)
+    h = shared.camera_height_m
+    own, common = 0.03 * h, 0.015 * h
+    assert indep.point_sigma_m(100) == pytest.approx(own)  # the default: independent points
+    for n in (1, 4, 100):
+        s = shared.point_sigma_m(n)
+        # n factors of sigma s inform the common height like one of sigma s / sqrt(n)
+        assert s / np.sqrt(n) == pytest.approx(np.sqrt(own**2 / n + common**2))
+        assert s / np.sqrt(n) >= common
+    # The factor's robust threshold stays at 1.96 of the point's own sigma, whatever the widened sigma: a point
+    # 1.5 own sigmas off the floor costs the quadratic (Gaussian) error, one 2.5 own sigmas off less (Huber).
+    p_base = np.array([2.0, 0.3, 0.0])
+    s_wide = shared.point_sigma_m(50)
+    f_wide = fac.ground_factor(1, 2, p_base, 0.0, s_wide, shared.cfg, None, own)
+    for off, robust in ((1.5, False), (2.5, True)):
+        vals = gtsam.Values()
+        vals.insert(1, gtsam.Pose3())
+        vals.insert(2, gtsam.Point3(2.0, 0.3, off * own))
+        gaussian = 0.5 * (off * own / s_wide) ** 2  # the whitened height error, squared, halved
+        assert (f_wide.error(vals) < 0.98 * gaussian) is robust, (off, f_wide.error(vals), gaussian)

@@ -172,10 +172,11 @@ class GroundConfig(_Section):
     sigma_height_fraction: float = Field(0.03, gt=0, description="sigma of a floor point's height, as a share of the "
                                          "camera height")
     sigma_common_fraction: float | None = Field(
-        0.015, gt=0, description="sigma of the error all floor points tied at one keyframe share (the floor's "
+        None, gt=0, description="sigma of the error all floor points tied at one keyframe share (the floor's "
         "height under the camera there: suspension, tyre compression, the local surface), as a share of the camera "
-        "height. A keyframe's n floor points then tell its height to sqrt(sigma_height^2 / n + this^2): the floor's "
-        "information does not grow with the number of points. null: independent points (n points: sigma / sqrt(n))")
+        "height, e.g. 0.015. A keyframe's n floor points then tell its height to sqrt(sigma_height^2 / n + this^2): "
+        "the floor's information does not grow with the number of points. null (default: measured better on the "
+        "scale suite's rendered floors, docs/scale_suite.md): independent points (n points: sigma / sqrt(n))")
     robust: RobustKind = Field(RobustKind.HUBER, description="robust loss of the ground factor")
     robust_k: float | None = Field(None, gt=0, description="its threshold in sigmas; default: chi-square quantile, 1-D")
     min_depression_deg: float = Field(8.0, ge=0, lt=90, description="floor candidates lie at least this far below "
