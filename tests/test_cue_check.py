@@ -35,6 +35,8 @@ def test_agreeing_cues_pass_and_the_disagreement_is_their_ratio():
     assert last.disagreement == pytest.approx(1.0 / 1.02 - 1.0, abs=1e-9)
     assert check.share_agreeing() == 1.0
     assert not check.floor_gated()
+    untested = _check()
+    assert untested.floor_gated()  # the floor is tied only once a test passed
 
 
 def test_a_camera_height_ten_percent_off_is_found_and_gates_the_floor():
@@ -51,6 +53,7 @@ def test_a_camera_height_ten_percent_off_is_found_and_gates_the_floor():
 
 
 def test_gate_off_only_reports():
+    assert not _check(gate=False).floor_gated()
     check = _check(gate=False)
     _drive(check, 12, wheel_scale=1.0, floor_scale=1.10)
     assert check.disagree_since is not None and not check.floor_gated()

@@ -12,11 +12,13 @@ Against the window's estimate, at each keyframe where both are measured over the
 
 Their ratio ``(D_estimate h_known) / (D_wheels h_estimate)`` does not depend on the estimate's scale, so it is a
 test of the cues, not of the fusion. Its log has the variance of the wheel scale's prior plus the floor height's
-(the shared error of a keyframe's floor, ``ground.sigma_common_fraction``, over the stretch's keyframes): the
+(a keyframe's floor height, ``ground.sigma_common_fraction`` or else ``sigma_height_fraction``, over the stretch's
+keyframes): the
 chi-square of one degree of freedom at ``confidence`` decides. Vision cannot tell which scale is the right one
 (it is up to scale); what does: the wheels' error is bounded by the tyre (a few percent), the floor's is not (a
-mis-measured height, a kerb, a table top taken for the floor). So while they disagree the floor's new points are
-not tied to it (``gate``: a switch on the floor's factors, set by the test), and the wheels carry the scale.
+mis-measured height, a kerb, a table top taken for the floor). So until a first test passes, and while they
+disagree, the floor's new points are not tied to it (``gate``: a switch on the floor's factors, set by the test),
+and the wheels carry the scale.
 
 Pure numpy: tested on its own (``tests/test_cue_check.py``).
 """
@@ -83,8 +85,10 @@ class CueCheck:
         return result
 
     def floor_gated(self) -> bool:
-        """Whether the floor's new points stay untied (the cues disagree now and ``gate`` is on)."""
-        return self.cfg.gate and self.disagree_since is not None
+        """Whether the floor's new points stay untied (``gate`` on): the cues disagree now, or they were never
+        tested yet (the floor is tied only once it has been checked: a wrong floor tied at the first keyframes
+        would set the wheel calibration before any test could stop it)."""
+        return self.cfg.gate and (self.disagree_since is not None or not self.tests)
 
     def share_agreeing(self) -> float:
         """Share of the tested keyframes whose cues agreed (nan: none tested)."""
