@@ -249,6 +249,10 @@ def _assert_whole_sequence(out: Path, ref_out: Path) -> dict:
     frames = [int(ln.split(",")[0]) for ln in (out / "stats.csv").read_text().splitlines()[1:]]
     assert frames == list(range(161))
     assert _ate(out) <= 1.05 * _ate(ref_out), (_ate(out), _ate(ref_out))
+    # The replay is the killed run (deterministic), and the resumed trajectory the uninterrupted one's.
+    assert summary["replay_max_difference_m"] == 0.0, summary
+    traj, ref = (np.loadtxt(d / "trajectory.txt", comments="#") for d in (out, ref_out))
+    np.testing.assert_allclose(traj[:, 1:4], ref[:, 1:4], atol=1e-9)
     return summary
 
 
