@@ -280,22 +280,57 @@ class FloorAttitude:
         return self._normal.copy()
 
     def standard_error_deg(self) -> float:
-        """Standard error of the learnt tilt (deg): the median's, 1.25 sigma / sqrt(n), with the fits' sigma
-        from their median absolute deviation (a ramp's few fits do not inflate it)."""
+        """Standard error of the learnt tilt (deg): the median's, 1.25 sigma / sqrt(n_eff), with the fits' sigma
+        from their median absolute deviation (a ramp's few fits do not inflate it).
+
+        Consecutive keyframes' fits share most of the window's floor points, so their errors are correlated and
+        n fits are not n measurements: ``n_eff`` is the AR(1) effective sample size n (1 - r) / (1 + r), r the
+        lag-1 autocorrelation of the fits (each axis; the smaller n_eff). Counted as independent, 10 fits made a
+        0.3-0.8 deg bias of a first stretch look like a significant mount error (a rendered loop and warehouse
+        whose mount is exact switched at keyframes 12-13)."""
         if len(self._xy) < 2:
             return float("inf")
-        xy = np.degrees(np.arcsin(np.clip(np.asarray(self._xy), -1.0, 1.0)))
-        sigma = 1.4826 * np.median(np.abs(xy - np.median(xy, axis=0)), axis=0)
-        return float(1.2533 * np.hypot(*sigma) / np.sqrt(len(xy)))
+        return _median_and_se(np.degrees(np.arcsin(np.clip(np.asarray(self._xy), -1.0, 1.0))))[1]
 
     def significant(self) -> bool:
-        """Whether the learnt tilt says the mount is off (ready, and ``tilt_significant``)."""
-        return self.ready and tilt_significant(float(np.hypot(*self.tilt_deg())), self.standard_error_deg())
+        """Whether the learnt tilt says the mount is off: ready, ``tilt_significant``, and constant. A mount
+        error is constant, the base's rocking and the first keyframes' poorly triangulated floors are not: the
+        older and the newer half of the fits must each show a significant tilt, and the same one (within three
+        of their combined standard errors)."""
+        if not self.ready or not tilt_significant(float(np.hypot(*self.tilt_deg())), self.standard_error_deg()):
+            return False
+        xy = np.degrees(np.arcsin(np.clip(np.asarray(self._xy), -1.0, 1.0)))
+        halves = [_median_and_se(h) for h in (xy[: len(xy) // 2], xy[len(xy) // 2:])]
+        (m0, se0), (m1, se1) = halves
+        return (all(tilt_significant(float(np.hypot(*m)), se) for m, se in halves)
+                and float(np.hypot(*(m1 - m0))) <= 3.0 * float(np.hypot(se0, se1)))
 
     def tilt_deg(self) -> tuple[float, float]:
         """The normal's tilt toward the base's +x (forward) and +y (left), in degrees."""
         n = self.normal
         return float(np.degrees(np.arctan2(n[0], n[2]))), float(np.degrees(np.arctan2(n[1], n[2])))
+
+
+def _median_and_se(xy_deg: np.ndarray) -> tuple[np.ndarray, float]:
+    """The median tilt (deg, x and y) of some fits and its standard error (as ``FloorAttitude.standard_error_deg``)."""
+    if len(xy_deg) < 2:
+        return np.median(xy_deg, axis=0), float("inf")
+    sigma = 1.4826 * np.median(np.abs(xy_deg - np.median(xy_deg, axis=0)), axis=0)
+    return np.median(xy_deg, axis=0), float(1.2533 * np.hypot(*sigma) / np.sqrt(effective_sample_size(xy_deg)))
+
+
+def effective_sample_size(series: np.ndarray) -> float:
+    """AR(1) effective number of independent samples of a (n,) or (n, d) series: n (1 - r) / (1 + r) with r its
+    lag-1 autocorrelation (clipped to [0, 0.95]; the smallest over the columns), at least 1."""
+    x = np.asarray(series, float).reshape(len(series), -1)
+    n = len(x)
+    if n < 3:
+        return float(n)
+    d = x - x.mean(axis=0)
+    var = np.sum(d * d, axis=0)
+    r = np.where(var > 0, np.sum(d[1:] * d[:-1], axis=0) / np.where(var > 0, var, 1.0), 0.0)
+    r = np.clip(r, 0.0, 0.95)
+    return float(max(1.0, np.min(n * (1.0 - r) / (1.0 + r))))
 
 
 def normal_from_tilt_deg(tilt_x_deg: float, tilt_y_deg: float) -> np.ndarray:
