@@ -375,6 +375,7 @@ def test_kitti_columns_in_results_csv_and_report(tmp_path):
     assert "t_rel % (100-800 m) mean" in report
 
 
+@pytest.mark.slow  # its fixture runs the local batch (about 30 s)
 def test_batch_runs_carry_their_kitti_error(local_batch, batch_dir):
     """Each finished run's KITTI error is its own smoothed trajectory against the sequence's ground truth,
     kept in batch_run.json (a reused run reads it there)."""

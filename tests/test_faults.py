@@ -431,3 +431,28 @@ def test_teleporting_wheels_are_rejected_with_a_warning(seq, tmp_path, reference
     ate = json.loads((tmp_path / "out" / "summary.json").read_text())["accuracy"]["ate_se3_rmse_m"]
     ref_ate = json.loads((ref_out / "summary.json").read_text())["accuracy"]["ate_se3_rmse_m"]
     assert ate < max(2.0 * ref_ate, 0.05)
+
+
+def test_a_stop_during_a_compiled_modules_import_is_a_stop_not_an_error(monkeypatch, capsys):
+    """SIGINT while gtsam's extension initialises surfaces as "ImportError: initialization failed" (seen in
+    test_sigint_during_imports_or_loading_is_one_line_exit_130 on a loaded machine): exit 130 and one line."""
+    from windowvo.cli import run as cli_run
+    from windowvo.runtime import stop
+
+    def import_hit_by_sigint(argv):
+        stop.STATE.signum = signal.SIGINT  # what the handler records, before the extension re-raises
+        raise ImportError("initialization failed")
+
+    def plain_import_error(argv):
+        raise ImportError("no module named gtsam")
+
+    try:
+        monkeypatch.setattr(cli_run, "_main", import_hit_by_sigint)
+        assert cli_run.main([]) == 130
+        assert "interrupted by SIGINT" in capsys.readouterr().err
+        stop.uninstall()
+        monkeypatch.setattr(cli_run, "_main", plain_import_error)
+        with pytest.raises(ImportError):  # without a stop signal an ImportError is not hidden
+            cli_run.main([])
+    finally:
+        stop.uninstall()

@@ -95,6 +95,7 @@ def shots(short_loop, tmp_path_factory):
     return imgs
 
 
+@pytest.mark.slow  # a recorded run and a headless browser's screenshots (about 35 s)
 @pytest.mark.parametrize("theme", ["light", "dark"])
 def test_every_view_draws_its_content(shots, theme):
     img = shots[theme]

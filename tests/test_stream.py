@@ -77,14 +77,15 @@ def test_streaming_api_rejects_bad_frames(short_loop):
 def test_sigkill_leaves_the_causal_trajectory_up_to_the_last_keyframe(seq_factory, tmp_path):
     from windowvo.synth.paths import PathKind
 
-    seq = seq_factory("kill_loop", path=PathKind.LOOP, duration_s=40.0, seed=41)
+    # The rendered loop of tests/test_pipeline.py (same name and spec: rendered once per test run).
+    seq = seq_factory("loop", path=PathKind.LOOP, duration_s=30.0, seed=21)
     out = tmp_path / "out"
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text(f"sequence: {seq}\noutput: {out}\nprogress: false\nviz:\n  rerun: off\n")
     p = subprocess.Popen([sys.executable, "-m", "windowvo.run", str(cfg)], stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     online = out / "trajectory_online.txt"
-    # Wait for evidence of progress: at least 100 causal poses flushed (a run of 801 frames is then mid-way).
+    # Wait for evidence of progress: at least 100 causal poses flushed (a run of 601 frames is then mid-way).
     deadline = time.time() + 300
     n_lines = 0
     while time.time() < deadline and p.poll() is None:

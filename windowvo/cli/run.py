@@ -69,6 +69,13 @@ def main(argv: list[str] | None = None) -> int:
         return _interrupted(intr.signum)
     except KeyboardInterrupt:  # a signal that came before the handlers (the interpreter starting)
         return _interrupted(signal.SIGINT)
+    except ImportError:
+        # A stop signal during a compiled module's import (gtsam) surfaces as "ImportError: initialization
+        # failed", the signal's exception wrapped by the extension's init: a stop, not an error.
+        signum = stop.requested()
+        if signum is None:
+            raise
+        return _interrupted(signum)
     finally:
         if "windowvo.runtime.parallel" in sys.modules:  # a pipelined run: leave no helper process behind
             from ..runtime.parallel import stop_resource_tracker
