@@ -103,6 +103,7 @@ def _pgrp(p: Path) -> int | None:
         return None
 
 
+@pytest.mark.slow
 def test_the_run_leaves_no_process_in_its_group(reference):
     _, out, left = reference
     assert (out / "summary.json").is_file()
@@ -256,6 +257,7 @@ def _assert_whole_sequence(out: Path, ref_out: Path) -> dict:
     return summary
 
 
+@pytest.mark.slow
 def test_sigkill_then_resume_continues_to_the_end(seq, tmp_path, reference, killed):
     _, ref_out, _ = reference
     cfg, out = _copy_killed(killed, seq, tmp_path)
@@ -275,6 +277,7 @@ def test_sigkill_then_resume_continues_to_the_end(seq, tmp_path, reference, kill
     assert again.returncode == 2 and "nothing to resume" in one_line_error(again)
 
 
+@pytest.mark.slow
 def test_a_kill_during_resume_is_resumed_again(seq, tmp_path, reference, killed):
     _, ref_out, _ = reference
     cfg, out = _copy_killed(killed, seq, tmp_path)
@@ -288,6 +291,7 @@ def test_a_kill_during_resume_is_resumed_again(seq, tmp_path, reference, killed)
     assert len(read_journal(out / JOURNAL_NAME).resumed_from) == 2
 
 
+@pytest.mark.slow
 def test_sigterm_during_resume_writes_the_frames_so_far_and_resumes_again(seq, tmp_path, reference, killed):
     _, ref_out, _ = reference
     cfg, out = _copy_killed(killed, seq, tmp_path)

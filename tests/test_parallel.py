@@ -17,8 +17,8 @@ from windowvo.runtime.parallel import BackendWorker
 from windowvo.synth.paths import PathKind
 
 
-@pytest.mark.parametrize("case", ["level", *(pytest.param(c, marks=pytest.mark.slow) for c in
-                                             ("rocking_tilted_mount", "tilted_mount_auto", "monocular_floor_late"))])
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["level", "rocking_tilted_mount", "tilted_mount_auto", "monocular_floor_late"])
 def test_pipelined_equals_sequential(short_loop, seq_factory, tmp_path, case):
     """Also on a rocking base whose camera.yaml is 0.5 deg off, with the mount calibration on: the level
     frame's Python factor and the learnt floor normal are built in the worker process; and on a loop whose
@@ -113,6 +113,7 @@ if __name__ == "__main__":
 """
 
 
+@pytest.mark.slow
 def test_the_worker_ends_when_the_main_process_is_killed(tmp_path):
     """SIGKILL of the main process while the worker holds unread results (more than a pipe's buffer):
     the worker must still end (an orphan would keep the robot's CPU and the parent's output pipes)."""

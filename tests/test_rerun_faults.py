@@ -144,6 +144,7 @@ def test_connect_to_a_dead_port_falls_back_to_saving(sequence, tmp_path, subreap
     _assert_survived(r, "viz.rerun=connect", "no Rerun viewer answers", "saved to", recorded=True)
 
 
+@pytest.mark.slow
 def test_connect_to_a_mute_viewer_is_bounded(sequence, tmp_path, subreaper):
     """Something accepts the connection but never speaks gRPC: the end of the run waits a bounded time."""
     with socket.socket() as srv:
@@ -167,6 +168,7 @@ def test_spawn_without_a_display_falls_back_to_saving(sequence, tmp_path, subrea
     _assert_survived(r, "viz.rerun=spawn", "no display", "saved to", recorded=True)
 
 
+@pytest.mark.slow
 def test_spawned_viewer_that_dies_is_reaped(sequence, tmp_path, subreaper):
     """DISPLAY names an X server that does not exist: the viewer starts, listens, then cannot open its window."""
     if Path("/tmp/.X11-unix/X99").exists():
@@ -207,6 +209,7 @@ def test_view_without_a_display_says_use_web(sequence, tmp_path):
     assert len(lines) == 1 and lines[0].startswith("windowvo.view: error:") and "--web" in lines[0], r.stderr
 
 
+@pytest.mark.slow
 def test_view_web_ctrl_c_exits_130(sequence, tmp_path):
     r0 = _run_vo(sequence, tmp_path / "o", "viz.rerun=save", "max_frames=10")
     assert (r0.out / "recording.rrd").is_file(), r0.stderr[-3000:]

@@ -87,6 +87,7 @@ def _small_bag(native: Path, tmp: Path, name: str, **kw) -> Path:
 # ---------------------------------------------------------------------------- end to end
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(BAGS))
 def test_bag_runs_like_the_native_folder(native, bag_dir, native_report, tmp_path, name):
     bag = _bag(native, bag_dir, name)

@@ -151,6 +151,7 @@ def test_featureless_sequence_is_a_clear_error(seq, tmp_path):
     assert (tmp_path / "out" / "stats.csv").is_file()
 
 
+@pytest.mark.slow
 def test_synth_and_eval_command_lines(tmp_path):
     out = tmp_path / "synth"
     r = subprocess.run([sys.executable, "-m", "windowvo.synth", str(out), "--path", "loop", "--duration", "1.0",
