@@ -1,6 +1,7 @@
 """Property-based fuzzing of the input loaders: every invalid input is a clear windowvo error."""
 
 import numpy as np
+import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -99,3 +100,14 @@ def test_a_message_with_control_characters_stays_one_line():
 
     assert str(CalibrationError("camera.yaml: unknown key '\n'")) == "camera.yaml: unknown key '\\n'"
     assert "\n" not in str(ConfigError("a\tb\rc\x01d\ne")) and "\\x01" in str(ConfigError("\x01"))
+
+
+def test_camera_yaml_keys_of_mixed_types_are_one_clear_error(tmp_path):
+    """Found by the fuzz test: unknown keys of different YAML types (a string and a float) could not be sorted for
+    the message (TypeError); now the one-line calibration error names one of them."""
+    from windowvo.errors import CalibrationError
+
+    p = tmp_path / "camera.yaml"
+    p.write_text("'': null\n0E0: null\n")
+    with pytest.raises(CalibrationError, match="unknown key"):
+        read_camera_yaml(p)

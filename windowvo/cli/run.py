@@ -56,8 +56,9 @@ def _parser() -> argparse.ArgumentParser:
     how.add_argument("--force", action="store_true",
                      help="run even if the output folder holds an earlier run's files (moved to OUT/previous-<time>/)")
     how.add_argument("--resume", action="store_true",
-                     help="continue a killed (or interrupted) run in the output folder to the end of the sequence: "
-                          "its journal's frames up to the last final keyframe are kept, the rest is run again")
+                     help="continue a killed (or interrupted) run in the output folder to the end of the sequence: it is "
+                          "replayed from its first frame (deterministic, checked against its journal) and goes on: "
+                          "the result is the uninterrupted run's")
     return p
 
 

@@ -243,7 +243,7 @@ def read_camera_yaml(path: Path | str) -> CameraModel:
         raise CalibrationError(f"{path.name}: expected a mapping with width, height, fx, fy, cx, cy")
     unknown = set(d) - CAMERA_KEYS
     if unknown:
-        raise CalibrationError(f"{path.name}: unknown key '{sorted(unknown)[0]}'")
+        raise CalibrationError(f"{path.name}: unknown key '{sorted(unknown, key=str)[0]}'")  # keys of any YAML type
     w, h = _number(d, "width", path), _number(d, "height", path)
     if w != int(w) or h != int(h):
         raise CalibrationError(f"{path.name}: width and height must be whole numbers")
