@@ -127,8 +127,8 @@ class FloorModel:
         self.last_agreement = None
 
     def ties_allowed(self) -> bool:
-        """New floor points are tied to the floor: it has a metric height, and the cues do not disagree
-        (``CueCheck.floor_gated``)."""
+        """New floor points are tied to the floor: it has a metric height and, with wheels, floor and wheels were
+        tested and agree (``CueCheck.floor_gated``)."""
         return not self.waiting_for_floor() and not (self.cues is not None and self.cues.floor_gated())
 
     def check_cues(self, k: int, wheel_m: float | None, estimate_m: float) -> None:
