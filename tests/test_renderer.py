@@ -194,3 +194,19 @@ def test_synth_command_line_bad_values_are_one_line(tmp_path, args, message):
     assert p.returncode == 2
     lines = p.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("windowvo: error: ") and message in lines[0], p.stderr
+
+
+def test_texture_wrap_gives_np_mod_bit_for_bit():
+    """The atlas's fast wrap (powers of two) is np.mod exactly: edge cases, negatives, +0.0 included."""
+    from windowvo.synth.scene import MipAtlas, make_texture, wrap_mod
+
+    atlas = MipAtlas(make_texture(0))
+    assert atlas.inv_sizes is not None  # the default texture's levels are powers of two
+    rng = np.random.default_rng(1)
+    x = np.concatenate([rng.uniform(-5000, 5000, 20000), rng.normal(0, 1e-6, 2000),
+                        [0.0, -0.0, -1024.0, 1024.0, -2048.0, -1e-30, 1e-30, -64.0, 63.99999, -0.5]]).astype(np.float32)
+    lv = rng.integers(0, len(atlas.sizes), x.size)
+    size, inv_size = atlas.sizes[lv], atlas.inv_sizes[lv]
+    fast = wrap_mod(x, size, inv_size)
+    ref = np.mod(x, size)
+    assert fast.dtype == ref.dtype and np.array_equal(fast.view(np.uint32), ref.view(np.uint32))

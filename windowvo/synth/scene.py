@@ -230,6 +230,18 @@ def make_texture(seed: int, size: int = TEX_SIZE) -> np.ndarray:
     return 0.12 + 0.76 * tex
 
 
+def wrap_mod(x: np.ndarray, size: np.ndarray, inv_size: np.ndarray | None) -> np.ndarray:
+    """``np.mod(x, size)`` for positive sizes; exact (the same bits) and faster when sizes are powers of two.
+
+    With ``size = 2^k`` the quotient ``x * (1 / size)``, its floor and ``floor * size`` are exact in
+    float32, and so is the difference (the remainder is a multiple of x's ulp below ``size``): both
+    ways give the one rounding of the same exact remainder, +0.0 included.
+    """
+    if inv_size is None:
+        return np.mod(x, size)
+    return x - np.floor(x * inv_size) * size
+
+
 class MipAtlas:
     """Mip levels of a tileable texture laid side by side, each padded by wrapping."""
 
@@ -254,6 +266,11 @@ class MipAtlas:
             xo += b.shape[1]
         self.offsets = np.array([lv[0] for lv in self.levels], np.float32)
         self.sizes = np.array([lv[2] for lv in self.levels], np.float32)
+        # Per-level lookup tables: 1 / 2^l (exact in float32) and, where every level's size is a power
+        # of two, 1 / size, so the wrap below is exact arithmetic (the same bits as np.mod, faster).
+        self.scales = np.float32(1.0) / (np.float32(2.0) ** np.arange(levels, dtype=np.float32))
+        pow2 = all(int(n) & (int(n) - 1) == 0 for n in self.sizes)
+        self.inv_sizes = (np.float32(1.0) / self.sizes) if pow2 else None
 
     def sample(self, s: np.ndarray, t: np.ndarray, level: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         """Trilinear sample at texel coordinates (s, t) of level 0 and fractional mip ``level``."""
@@ -263,11 +280,12 @@ class MipAtlas:
         out = np.zeros(shape, np.float32)
         for lv, wgt in ((lv0, 1.0 - frac), (lv1, frac)):
             size = self.sizes[lv]
-            scale = np.float32(1.0) / (np.float32(2.0) ** lv.astype(np.float32))
+            scale = self.scales[lv]
             # pyrDown keeps the even texels, so texel j of level l sits at level-0 index 2^l j:
             # a continuous level-0 coordinate s (texel centres at i + 0.5) is index (s - 0.5) / 2^l.
-            ss = np.mod((s - 0.5) * scale, size)
-            tt = np.mod((t - 0.5) * scale, size)
+            inv_size = None if self.inv_sizes is None else self.inv_sizes[lv]
+            ss = wrap_mod((s - 0.5) * scale, size, inv_size)
+            tt = wrap_mod((t - 0.5) * scale, size, inv_size)
             mx = (ss + self.offsets[lv]).astype(np.float32).reshape(shape)
             my = (tt + MIP_PAD).astype(np.float32).reshape(shape)
             val = cv2.remap(self.atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
@@ -498,7 +516,7 @@ class Renderer:
         tb[ok] = t_ray[ok]
         buf.s_tex[rs, cs][ok] = (u[ok] + p.tex_offset[0]) / TEXEL_M
         buf.t_tex[rs, cs][ok] = (v[ok] + p.tex_offset[1]) / TEXEL_M
-        buf.cosb[rs, cs][ok] = np.abs(dn[ok]) / np.linalg.norm(rays[ok], axis=1)
+        buf.cosb[rs, cs][ok] = np.abs(dn[ok]) / self.ray_len[rs, cs][ok]  # ray_len: the same norm, computed once
         buf.bright[rs, cs][ok] = p.brightness
         buf.contrast[rs, cs][ok] = p.contrast
         if buf.gloss is not None:
