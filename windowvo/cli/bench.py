@@ -34,15 +34,18 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m windowvo.bench", description=first_line(_tools_bench.__doc__),
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog=plain_help("\n".join((_tools_bench.__doc__ or "").splitlines()[1:])))
-    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun", "memory", "bag", "modes", "scale", "stages"],
+    p.add_argument("--suite", nargs="+", default=["sequences"], choices=["sequences", "frontend", "backend", "rerun", "memory", "bag", "modes", "scale", "stages", "speed"],
                    help="scale: the scale suite (fused cues against each cue alone, windowvo/tools/scale_suite.py); "
-                        "stages: the per-stage CPU budget (windowvo/tools/stage_budget.py)")
+                        "stages: the per-stage CPU budget (windowvo/tools/stage_budget.py); speed: whole processes "
+                        "against the chaining baseline, back to back (windowvo/tools/speed.py)")
     p.add_argument("--out", default="windowvo_output/bench", help="outputs, JSON and plots")
     p.add_argument("--cache", default="windowvo_output/bench_cache", help="rendered sequences (reused)")
     p.add_argument("--duration", type=float, default=30.0, help="seconds of each synthetic sequence")
     p.add_argument("--jobs", type=int, default=1, help="sequences run in parallel processes")
     p.add_argument("--only", nargs="*", help="run only these sequence names")
     p.add_argument("--backend-keyframes", type=int, default=5000)
+    p.add_argument("--repeats", type=int, default=3, help="speed: alternated pairs of whole processes per sequence "
+                   "(the fastest of each counts)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="config override for every windowvo run of the sequences suite (repeatable), "
                         "e.g. --set backend.marginalize_every=1")
@@ -155,6 +158,12 @@ def _stages(cache: Path, out: Path) -> dict:
     return res
 
 
+def _speed(a, cache: Path, out: Path) -> dict:
+    from ..tools import speed
+
+    return speed.bench_speed(cache, out, a.repeats)
+
+
 def _bag(cache: Path, out: Path) -> dict:
     bag_res = bench_bag(cache, out)
     print("## ROS bag input (frames streamed)\n\n| bag | MB | frames | keyframes | fps | peak RSS MB |\n"
@@ -180,7 +189,8 @@ def main(argv=None) -> int:
     suites = {"sequences": lambda: _sequences(a, out, cache), "frontend": lambda: _frontend(cache),
               "backend": lambda: _backend(a.backend_keyframes), "rerun": lambda: _rerun(cache, out),
               "modes": lambda: _modes(cache, out), "memory": lambda: _memory(cache, out), "bag": lambda: _bag(cache, out),
-              "scale": lambda: _scale(a, out, cache), "stages": lambda: _stages(cache, out)}
+              "scale": lambda: _scale(a, out, cache), "stages": lambda: _stages(cache, out),
+              "speed": lambda: _speed(a, cache, out)}
     results: dict = {name: run() for name, run in suites.items() if name in a.suite}
     (out / "bench.json").write_text(json.dumps(results, indent=2, default=float))
     print(f"results: {out / 'bench.json'}")

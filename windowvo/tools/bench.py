@@ -24,6 +24,10 @@ Suites:
   RANSAC, keyframe decision, each back-end step, recording, outputs) per frame and per keyframe, on a
   640x480 loop and a KITTI-size sequence, and the start-up (``windowvo/tools/stage_budget.py``; also
   written to ``stages/stages.json``).
+* ``speed``: whole processes as a user runs them (``python -m windowvo.run``, default run mode, recording
+  saved) against the frame-to-frame chaining baseline (ORB 2000) as a whole process, back to back and
+  alternated, ``--repeats`` pairs (the fastest of each counts), on the rendered 640x480 loop and figure eight
+  (30 s) and the KITTI excerpts (``windowvo/tools/speed.py``): wall and CPU time, the ratio, each one's ATE.
 
 Each sequence runs in its own process (``--jobs N`` runs N at once) so peak RSS is per run.
 ``--set KEY=VALUE`` (repeatable) changes the config of every windowvo run of the ``sequences``

@@ -1,0 +1,38 @@
+"""The whole-process speed suite (tools/speed.py): both methods run as processes, are evaluated, and the table
+reports what they measured. No assertion on any duration (speed lives in the benchmark)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from windowvo.synth.paths import PathKind
+from windowvo.tools.bench import CaseKind, SeqCase
+from windowvo.tools.speed import ProcessTime, SpeedRow, run_speed_case, speed_cases, speed_table
+
+
+def test_speed_cases_are_the_issue_sequences():
+    names = [c.name for c in speed_cases()]
+    assert names[:2] == ["loop", "figure_eight_vibration"]
+    rendered = [c for c in speed_cases() if c.kind is CaseKind.SYNTH]
+    assert all(c.spec is not None and c.spec["duration_s"] == 30.0 for c in rendered)  # 600 frames at 20 fps
+
+
+def test_table_ratio_is_chaining_over_windowvo():
+    row = SpeedRow("s", 100, ProcessTime(2.0, 3.0, 0.01), ProcessTime(8.0, 7.5, 0.2), 3)
+    assert row.ratio == pytest.approx(4.0)
+    line = speed_table([row]).splitlines()[-1]
+    assert "**4.00x**" in line and "2.0 (50.0) / 3.0" in line and "8.0 (12.5) / 7.5" in line
+
+
+@pytest.mark.slow
+def test_one_pair_of_whole_processes(tmp_path):
+    """A short rendered loop: windowvo and the chaining baseline each run as a process and are evaluated."""
+    case = SeqCase("speed_tiny", CaseKind.SYNTH, dict(path=PathKind.LOOP, duration_s=2.0, seed=5))
+    row = run_speed_case(case, tmp_path / "cache", tmp_path / "out", repeats=1)
+    assert row.frames == 41
+    for p in (row.windowvo, row.chaining):
+        assert p.wall_s > 0 and p.cpu_s > 0 and math.isfinite(p.ate_se3_m)
+    assert row.windowvo.ate_se3_m < 0.05  # windowvo on a clean 2 s loop (about 1.6 m)
+    assert (tmp_path / "out" / "windowvo_0" / "recording.rrd").is_file()  # the recording was on
