@@ -44,3 +44,19 @@ def test_the_summary_is_the_distribution_of_fused_over_the_best_cue():
     assert math.isclose(s["share_within_1.1x"], 2 / 3)
     assert s["fused_worse_than_wheels_alone"] == 1  # b: 0.01 m against the wheels' 0.005 m
     assert "2.00x" in ss.table(rows) and "3 sequences" in ss.summary_text(s)
+
+
+def test_overrides_change_every_way_but_not_its_cue_switches(tmp_path, monkeypatch):
+    """--set reaches every way of the scale suite; a way's own cue switch (floor only: no wheels) still wins."""
+    case = next(c for c in ss.suite_cases() if c.kitti_path is not None) if SHARED_DATA.is_dir() else None
+    if case is None:  # a rendered case would render here: build its config without the sequence
+        case = ss.rendered_cases()[0]
+        monkeypatch.setattr(ss, "ensure_rendered", lambda c, cache: tmp_path / c.name)
+    over = ("backend.ground.robust=cauchy", "backend.use_odometry=true", "backend.ground.enabled=true")
+    plain = ss.case_config(case, tmp_path, tmp_path, "floor")
+    floor = ss.case_config(case, tmp_path, tmp_path, "floor", over)
+    wheels = ss.case_config(case, tmp_path, tmp_path, "wheels", over)
+    assert "robust" not in plain["backend"].get("ground", {})
+    assert floor["backend"]["ground"]["robust"] == "cauchy" and wheels["backend"]["ground"]["robust"] == "cauchy"
+    assert floor["backend"]["use_odometry"] is False  # the way's switch, applied after the overrides
+    assert wheels["backend"]["ground"]["enabled"] is False

@@ -47,7 +47,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=int, default=3, help="speed: alternated pairs of whole processes per sequence "
                    "(the fastest of each counts)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="config override for every windowvo run of the sequences suite (repeatable), "
+                   help="config override for every windowvo run of the sequences and the scale suites (repeatable; "
+                        "the scale suite's cue switches of each way still apply), "
                         "e.g. --set backend.marginalize_every=1")
     return p
 
@@ -141,7 +142,7 @@ def _scale(a, out: Path, cache: Path) -> dict:
     cases = scale_suite.suite_cases()
     if a.only:
         cases = [c for c in cases if c.name in a.only]
-    rows = scale_suite.run_suite(cases, cache / "scale", out / "scale", a.jobs)
+    rows = scale_suite.run_suite(cases, cache / "scale", out / "scale", a.jobs, tuple(a.set))
     s = scale_suite.write_results(rows, out / "scale")
     print("## Scale suite: fused cues against each cue alone (ATE m)\n")
     print(scale_suite.table(rows) + "\n")

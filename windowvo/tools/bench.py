@@ -31,7 +31,8 @@ Suites:
 
 Each sequence runs in its own process (``--jobs N`` runs N at once) so peak RSS is per run.
 ``--set KEY=VALUE`` (repeatable) changes the config of every windowvo run of the ``sequences``
-suite, e.g. ``--set backend.marginalize_every=1`` to compare a setting against the defaults.
+and ``scale`` suites (the scale suite's cue switches of each way still apply), e.g.
+``--set backend.marginalize_every=1`` to compare a setting against the defaults.
 Numbers are what this machine measured; nothing is enforced here.
 """
 

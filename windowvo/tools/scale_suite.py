@@ -140,8 +140,9 @@ def ensure_rendered(case: ScaleCase, cache: Path) -> Path:
     return seq_dir
 
 
-def case_config(case: ScaleCase, cache: Path, out: Path, way: str) -> dict:
-    """The config mapping of one way of one case (sequential, no recording)."""
+def case_config(case: ScaleCase, cache: Path, out: Path, way: str, overrides: tuple[str, ...] = ()) -> dict:
+    """The config mapping of one way of one case (sequential, no recording); ``overrides`` (``dotted.key=value``,
+    as on the run's command line) change every way, and the way's own cue switches are applied after them."""
     from ..config import apply_overrides
 
     data: dict[str, Any] = {"progress": False, "viz": {"rerun": "off"}, "run_mode": "sequential",
@@ -152,7 +153,7 @@ def case_config(case: ScaleCase, cache: Path, out: Path, way: str) -> dict:
                                         "yaw_bias_per_m": KITTI_SCALE_SUITE_YAW_BIAS_PER_M})
     else:
         data["sequence"] = str(ensure_rendered(case, cache))
-    return apply_overrides(data, list(WAYS[way]))
+    return apply_overrides(apply_overrides(data, list(overrides)), list(WAYS[way]))
 
 
 def _ate(acc) -> dict:
@@ -162,7 +163,7 @@ def _ate(acc) -> dict:
             "path_m": acc.path_length_m}
 
 
-def run_scale_case(case: ScaleCase, cache: Path, out: Path) -> dict:
+def run_scale_case(case: ScaleCase, cache: Path, out: Path, overrides: tuple[str, ...] = ()) -> dict:
     """One sequence, four ways and the wheels alone (runs in a worker process)."""
     logging.basicConfig(level=logging.ERROR)
     from ..config import config_from_dict
@@ -172,7 +173,7 @@ def run_scale_case(case: ScaleCase, cache: Path, out: Path) -> dict:
     row: dict[str, Any] = {"sequence": case.name, "scene": case.scene}
     rep = None
     for way in WAYS:
-        rep = run_job(config_from_dict(case_config(case, cache, out, way)))
+        rep = run_job(config_from_dict(case_config(case, cache, out, way, overrides)))
         row[way] = {**_ate(rep.accuracy), "metric": rep.result.metric, "scale_sources": rep.result.scale_sources}
         if way == "fused":
             c = rep.result.wheel_calibration
@@ -187,14 +188,16 @@ def run_scale_case(case: ScaleCase, cache: Path, out: Path) -> dict:
     return row
 
 
-def run_suite(cases: list[ScaleCase], cache: Path, out: Path, jobs: int) -> list[dict]:
-    """Render every case first (in this process), then each case in a fresh interpreter, ``jobs`` at once."""
+def run_suite(cases: list[ScaleCase], cache: Path, out: Path, jobs: int, overrides: tuple[str, ...] = ()) -> list[dict]:
+    """Render every case first (in this process), then each case in a fresh interpreter, ``jobs`` at once
+    (``overrides``: see :func:`case_config`)."""
     from .executors import values_in_processes
 
     for c in cases:
         if c.kitti_path is None:
             ensure_rendered(c, cache)
-    return values_in_processes([(c.name, run_scale_case, (c, cache, out)) for c in cases], jobs, "scale suite")
+    return values_in_processes([(c.name, run_scale_case, (c, cache, out, tuple(overrides))) for c in cases], jobs,
+                               "scale suite")
 
 
 def _gmean(values: list[float]) -> float:
