@@ -7,7 +7,14 @@ import pytest
 from windowvo.camera import CameraModel
 from windowvo.config import DetectionOrder, FrontendConfig, GateConfig, KeyframeConfig
 from windowvo.frontend.frontend import Frontend
-from windowvo.frontend.tracker import KLTTracker, ORBTracker, cell_counts, grid_select, resolve_detection_order
+from windowvo.frontend.tracker import (
+    KLTTracker,
+    ORBTracker,
+    cell_counts,
+    grid_cells,
+    grid_select,
+    resolve_detection_order,
+)
 from windowvo.frontend.two_view import two_view_geometry
 from windowvo.geometry import inv_T, rotation_angle
 from windowvo.synth.generate import LensPreset, SynthSpec, build_world, lens_fields
@@ -354,3 +361,131 @@ def test_tracks_survive_a_region_coming_into_view(world):
     kept = np.isin(fo0.track_ids[upper], fo1.track_ids).mean()
     print(f"tracks kept across the change: {kept:.2f}")
     assert kept >= 0.8
+
+
+# --- the front end's cuts: the same results for less work (docs/performance.md "Front-end cuts") ---
+
+
+def _textures(shape, n, seed):
+    """Random textured uint8 images (blurred noise of a few scales, like camera frames)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        noise = rng.integers(0, 256, shape, dtype=np.uint8)
+        out.append(cv2.GaussianBlur(noise, (0, 0), 1.0 + k % 4) if k % 5 else noise)
+    return out
+
+
+@pytest.mark.parametrize("shape", [(370, 1226), (376, 1241), (101, 333)])
+def test_area_cell_means_are_cv2_resize_bit_for_bit(shape, monkeypatch):
+    """The gain normaliser's cells: exact means from the integral image, rounded like OpenCV, and OpenCV's own
+    float32 sums for the cells near a rounding boundary; the same values as ``cv2.resize`` INTER_AREA on every
+    image, the near cells included (the test counts them: it can only pass by chance if none came up)."""
+    from windowvo.frontend import frontend as fe_mod
+
+    summed = []
+    real = fe_mod.opencv_area_cell
+    monkeypatch.setattr(fe_mod, "opencv_area_cell", lambda *a: summed.append(a[2:]) or real(*a))
+    for img in _textures(shape, 40, seed=shape[1]):
+        for cells in ((8, 6), (7, 5)):
+            want = cv2.resize(img, cells, interpolation=cv2.INTER_AREA).astype(np.float64)
+            assert np.array_equal(fe_mod.area_cell_means(img, cells), want)
+    assert summed, "no cell near a rounding boundary came up"
+    assert fe_mod.area_grid(480, 640, 8, 6) is None  # a whole number of pixels per cell: cv2.resize's fast path
+
+
+def test_opencv_area_sums_are_emulated_exactly():
+    """``opencv_area_cell`` is OpenCV's INTER_AREA sum before its rounding: checked against cv2.resize of the
+    float32 image (the same float32 arithmetic), every cell, bit for bit."""
+    from windowvo.frontend.frontend import area_grid, opencv_area_cell
+
+    for img in _textures((370, 1226), 6, seed=3):
+        grid = area_grid(370, 1226, 8, 6)
+        assert grid is not None
+        want = cv2.resize(img.astype(np.float32), (8, 6), interpolation=cv2.INTER_AREA)
+        got = np.array([[opencv_area_cell(img, grid, r, c) for c in range(8)] for r in range(6)], np.float32)
+        assert np.array_equal(got, want)
+
+
+def _greedy_reference(cand, existing, shape, cols, rows, budget, per_cell):
+    """The selection rule one candidate at a time (what ``grid_select`` did before it was vectorised)."""
+    counts = cell_counts(existing, shape, cols, rows)
+    chosen = []
+    for k, (cy, cx) in enumerate(zip(*grid_cells(cand, shape, cols, rows), strict=True)):
+        if counts[cy, cx] < per_cell and len(chosen) < budget:
+            counts[cy, cx] += 1
+            chosen.append(k)
+    return np.asarray(chosen, np.int64)
+
+
+def test_grid_fill_in_batches_is_one_pass_over_all():
+    from windowvo.frontend.tracker import GridFill
+
+    rng = np.random.default_rng(5)
+    shape = (370, 1226)
+    for _ in range(30):
+        cand = (rng.random((int(rng.integers(0, 400)), 2)) * [1226, 370]).astype(np.float32)
+        existing = (rng.random((int(rng.integers(0, 150)), 2)) * [1226, 370]).astype(np.float32)
+        budget, per_cell = int(rng.integers(1, 150)), int(rng.integers(1, 9))
+        want = _greedy_reference(cand, existing, shape, 8, 6, budget, per_cell)
+        assert np.array_equal(grid_select(cand, existing, shape, 8, 6, budget, per_cell), want)
+        fill = GridFill(existing, shape, 8, 6, budget, per_cell)
+        cuts = np.sort(rng.integers(0, len(cand) + 1, 4))
+        got = [lo + fill.take(cand[lo:hi]) for lo, hi in zip([0, *cuts], [*cuts, len(cand)], strict=True)]
+        assert np.array_equal(np.concatenate(got), want)
+        assert fill.full == (len(want) == budget)
+
+
+def test_detection_searches_only_short_cells_and_stops_when_the_budget_is_full(world, monkeypatch):
+    """Tracks fill every cell but twelve (20 new corners needed): the new corners land only in those, and (rows
+    order) detection stops at the cell that fills the budget, with the corners that searching every short cell
+    and then selecting gives."""
+    img = render(world, 2.0)[0]
+    cfg = FrontendConfig(detection_order=DetectionOrder.ROWS, max_features=200)  # 5 a cell, up to 7 new ones
+    h, w = img.shape
+    xs, ys = np.linspace(0, w, 9), np.linspace(0, h, 7)
+    short = {(r, c) for r in range(6) for c in range(8) if (r + 2 * c) % 4 == 1}
+    pts = np.array([[xs[c] + (xs[c + 1] - xs[c]) * (0.2 + 0.15 * k), ys[r] + (ys[r + 1] - ys[r]) * 0.5]
+                    for r in range(6) for c in range(8) if (r, c) not in short for k in range(5)], np.float32)
+    assert len(short) == 12 and len(pts) == 180
+    calls = []
+    real = cv2.goodFeaturesToTrack
+    monkeypatch.setattr(cv2, "goodFeaturesToTrack", lambda *a, **k: calls.append(1) or real(*a, **k))
+
+    def tracker():
+        tr = KLTTracker(cfg)
+        tr.pts, tr.ids, tr.ages = pts.copy(), np.arange(len(pts)), np.zeros(len(pts), np.int32)
+        return tr
+
+    tr = tracker()
+    assert tr._detect(img, None) == 20
+    cy, cx = grid_cells(tr.pts[len(pts):], (h, w), 8, 6)
+    assert set(zip(cy.tolist(), cx.tolist(), strict=True)) <= short  # only where tracks were short
+    assert 2 <= len(calls) < len(short)  # 20 corners from the first few short cells (up to 7 each)
+    tr = tracker()
+    every = np.concatenate(list(tr._cell_candidates(img, tr._detection_mask((h, w), None))))
+    calls.clear()
+    got = tr._new_corners(img, None, 20)
+    assert len(calls) < len(short) and len(got) == 20
+    assert np.array_equal(got, every[grid_select(every, pts, (h, w), 8, 6, 20, 7)])
+
+
+def test_backward_flow_only_for_forward_survivors_keeps_every_result(world):
+    """The KLT checks with the backward flow run for the forward survivors only: the same tracks survive, at the
+    same pixels, as with both flows over every track (Lucas-Kanade tracks each point on its own)."""
+    cfg = FrontendConfig()
+    tr = KLTTracker(cfg)
+    img0, img1 = render(world, 3.0)[0], render(world, 3.3)[0]  # a long step: some tracks fail
+    tr.track(img0)
+    p0 = tr.pts.reshape(-1, 1, 2)
+    lk = dict(winSize=tr.lk_win, maxLevel=cfg.klt_levels, criteria=tr.lk_crit)
+    p1, st, err = cv2.calcOpticalFlowPyrLK(img0, img1, p0, None, **lk)
+    p0b, stb, _ = cv2.calcOpticalFlowPyrLK(img1, img0, p1, p0.copy(), **lk, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    p1 = p1.reshape(-1, 2)
+    b, (h, w) = cfg.border_px, img1.shape
+    want = ((st.ravel() == 1) & (stb.ravel() == 1) & (err.ravel() < cfg.klt_max_residual)
+            & (np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1) < cfg.forward_backward_px)
+            & (p1[:, 0] >= b) & (p1[:, 1] >= b) & (p1[:, 0] < w - b) & (p1[:, 1] < h - b))
+    ok, got = tr._flow(img0, img1, None)
+    assert 0 < want.sum() < len(want)  # some fail, some survive: the test can tell
+    assert np.array_equal(ok, want) and np.array_equal(got[ok], p1[want])

@@ -7,6 +7,7 @@ the budget is short is ``frontend.detection_order`` (``grid_select``).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -68,23 +69,56 @@ def grid_cells(pixels: np.ndarray, shape: tuple[int, int], cols: int, rows: int)
 
 def cell_counts(pixels: np.ndarray, shape: tuple[int, int], cols: int, rows: int) -> np.ndarray:
     """Number of pixels in each grid cell, (rows, cols)."""
-    counts = np.zeros((rows, cols), np.int32)
-    if len(pixels):
-        np.add.at(counts, grid_cells(pixels, shape, cols, rows), 1)
-    return counts
+    if not len(pixels):
+        return np.zeros((rows, cols), np.int32)
+    cy, cx = grid_cells(pixels, shape, cols, rows)
+    return np.bincount(cy * cols + cx, minlength=rows * cols).astype(np.int32).reshape(rows, cols)
+
+
+def rank_within(groups: np.ndarray) -> np.ndarray:
+    """Each element's rank (0, 1, ...) among the elements of its group, in their order: [3, 1, 3, 3] -> [0, 0, 1, 2]."""
+    by_group = np.argsort(groups, kind="stable")
+    sorted_groups = groups[by_group]
+    first = np.searchsorted(sorted_groups, sorted_groups, side="left")
+    rank = np.empty(len(groups), np.int64)
+    rank[by_group] = np.arange(len(groups)) - first
+    return rank
 
 
 def spread_order(candidates: np.ndarray, shape: tuple[int, int], cols: int, rows: int) -> np.ndarray:
     """Permutation of ``candidates`` (best first within each cell) into rounds of one per cell, bottom
     rows first within a round: a short budget then reaches every cell, the floor's rows first."""
     cy, cx = grid_cells(candidates, shape, cols, rows)
-    cell = cy * cols + cx
-    by_cell = np.argsort(cell, kind="stable")
-    sorted_cells = cell[by_cell]
-    first = np.searchsorted(sorted_cells, sorted_cells, side="left")
-    rank = np.empty(len(cell), np.int64)
-    rank[by_cell] = np.arange(len(cell)) - first
-    return np.lexsort((-cy, rank))
+    return np.lexsort((-cy, rank_within(cy * cols + cx)))
+
+
+class GridFill:
+    """Candidates taken in the order given into grid cells holding fewer than ``per_cell`` points (the
+    ``existing`` ones and those taken), until ``budget`` are taken; fed in batches (``take``), the same
+    choice as one pass over their concatenation, so a caller can stop detecting once the budget is full."""
+
+    def __init__(self, existing: np.ndarray, shape: tuple[int, int], cols: int, rows: int, budget: int,
+                 per_cell: int):
+        self.shape, self.cols, self.rows = shape, cols, rows
+        self.counts = cell_counts(existing, shape, cols, rows).reshape(-1)
+        self.room = max(budget, 0)
+        self.per_cell = per_cell
+
+    @property
+    def full(self) -> bool:
+        return self.room <= 0
+
+    def take(self, candidates: np.ndarray) -> np.ndarray:
+        """Indices of the candidates taken, in their order. In a cell, the first ones while it has room."""
+        if self.full or len(candidates) == 0:
+            return np.zeros(0, np.int64)
+        cy, cx = grid_cells(candidates, self.shape, self.cols, self.rows)
+        cell = cy * self.cols + cx
+        fits = rank_within(cell) < self.per_cell - self.counts[cell]
+        sel = np.nonzero(fits)[0][: self.room]
+        self.counts += np.bincount(cell[sel], minlength=self.counts.size).astype(np.int32)
+        self.room -= len(sel)
+        return sel.astype(np.int64)
 
 
 def grid_select(
@@ -107,16 +141,7 @@ def grid_select(
         return np.zeros(0, np.int64)
     perm = spread_order(candidates, shape, cols, rows) if order is DetectionOrder.SPREAD else None
     ordered = candidates if perm is None else candidates[perm]
-    counts = cell_counts(existing, shape, cols, rows)
-    ccy, ccx = grid_cells(ordered, shape, cols, rows)
-    chosen = []
-    for k in range(len(ordered)):
-        if counts[ccy[k], ccx[k]] < per_cell:
-            counts[ccy[k], ccx[k]] += 1
-            chosen.append(k)
-            if len(chosen) >= budget:
-                break
-    sel = np.asarray(chosen, np.int64)
+    sel = GridFill(existing, shape, cols, rows, budget, per_cell).take(ordered)
     return sel if perm is None else perm[sel]
 
 
@@ -163,30 +188,14 @@ class KLTTracker(_TrackStore):
         self.prev_pyr: np.ndarray | None = None
         self.lk_win = (cfg.klt_window_px, cfg.klt_window_px)
         self.lk_crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
+        self._base_mask: tuple[tuple[int, int], np.ndarray | None, np.ndarray] | None = None
 
     def track(self, image: np.ndarray, mask: np.ndarray | None = None) -> TrackSet:
         self.frame += 1
         lap = Laps()
-        h, w = image.shape[:2]
-        pyr = image  # the Python binding takes images, not prebuilt pyramids
-        b = self.cfg.border_px
+        pyr = image  # the Python binding takes images, not prebuilt pyramids (buildOpticalFlowPyramid's tuple)
         if self.prev_pyr is not None and len(self.pts):
-            p0 = self.pts.reshape(-1, 1, 2)
-            lk = dict(winSize=self.lk_win, maxLevel=self.cfg.klt_levels, criteria=self.lk_crit)
-            p1, st, err = cv2.calcOpticalFlowPyrLK(self.prev_pyr, pyr, p0, None, **lk)  # type: ignore[call-overload]
-            p0b, stb, _ = cv2.calcOpticalFlowPyrLK(pyr, self.prev_pyr, p1, p0.copy(), **lk,  # type: ignore[call-overload]
-                                                   flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-            fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
-            p1 = p1.reshape(-1, 2)
-            ok = (st.ravel() == 1) & (stb.ravel() == 1) & (fb < self.cfg.forward_backward_px)
-            # KLT's residual (mean absolute grey difference of the patch): a patch that
-            # deformed (strong perspective change, occlusion) tracks with a bias; end it.
-            ok &= err.ravel() < self.cfg.klt_max_residual
-            ok &= (p1[:, 0] >= b) & (p1[:, 1] >= b) & (p1[:, 0] < w - b) & (p1[:, 1] < h - b)
-            if mask is not None and ok.any():
-                xi = np.clip(p1[:, 0].astype(int), 0, w - 1)
-                yi = np.clip(p1[:, 1].astype(int), 0, h - 1)
-                ok &= mask[yi, xi] > 0
+            ok, p1 = self._flow(self.prev_pyr, pyr, mask)
             self.ids, self.pts, self.ages = self.ids[ok], p1[ok].astype(np.float32), self.ages[ok] + 1
         self.prev_pyr = pyr
         lap(Stage.TRACKING)
@@ -196,11 +205,39 @@ class KLTTracker(_TrackStore):
         lap(Stage.TRACKING)
         return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), n_new)
 
-    def _grid_candidates(self, image: np.ndarray, m: np.ndarray, need: int) -> np.ndarray:
-        """Shi-Tomasi corners, searched only in the grid cells that are short of tracks.
+    def _flow(self, prev: np.ndarray, image: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The live tracks' new pixels (N, 2) and which of them survive the checks (N,) bool.
 
-        Candidates come back sorted by corner quality within each cell; cost follows the
-        area searched, so a frame that lost tracks only at one border stays cheap.
+        The backward flow runs only for the tracks the forward flow's own checks (status, residual, border,
+        mask) keep: Lucas-Kanade tracks every point on its own, so the others' results are the same."""
+        h, w = image.shape[:2]
+        b = self.cfg.border_px
+        p0 = self.pts.reshape(-1, 1, 2)
+        lk = dict(winSize=self.lk_win, maxLevel=self.cfg.klt_levels, criteria=self.lk_crit)
+        p1, st, err = cv2.calcOpticalFlowPyrLK(prev, image, p0, None, **lk)  # type: ignore[call-overload]
+        p1 = p1.reshape(-1, 2)
+        # KLT's residual (mean absolute grey difference of the patch): a patch that
+        # deformed (strong perspective change, occlusion) tracks with a bias; end it.
+        ok = (st.ravel() == 1) & (err.ravel() < self.cfg.klt_max_residual)
+        ok &= (p1[:, 0] >= b) & (p1[:, 1] >= b) & (p1[:, 0] < w - b) & (p1[:, 1] < h - b)
+        if mask is not None and ok.any():
+            xi = np.clip(p1[:, 0].astype(int), 0, w - 1)
+            yi = np.clip(p1[:, 1].astype(int), 0, h - 1)
+            ok &= mask[yi, xi] > 0
+        fwd = np.nonzero(ok)[0]
+        if fwd.size:
+            p0f = p0[fwd]
+            p0b, stb, _ = cv2.calcOpticalFlowPyrLK(image, prev, p1[fwd].reshape(-1, 1, 2), p0f.copy(), **lk,  # type: ignore[call-overload]
+                                                   flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+            fb = np.linalg.norm((p0b - p0f).reshape(-1, 2), axis=1)
+            ok[fwd] = (stb.ravel() == 1) & (fb < self.cfg.forward_backward_px)
+        return ok, p1
+
+    def _cell_candidates(self, image: np.ndarray, m: np.ndarray) -> Iterator[np.ndarray]:
+        """Shi-Tomasi corners (K, 2) float32 of each grid cell short of tracks, cell by cell, top row first.
+
+        Searched only in those cells (cost follows the area searched), each sorted by corner quality
+        relative to the best corner of its cell; lazily, so a caller whose budget is full stops early.
         """
         cfg = self.cfg
         h, w = image.shape[:2]
@@ -209,7 +246,6 @@ class KLTTracker(_TrackStore):
         counts = cell_counts(self.pts, (h, w), cols, rows)
         xs = np.linspace(0, w, cols + 1).astype(int)
         ys = np.linspace(0, h, rows + 1).astype(int)
-        out = []
         for r in range(rows):
             for c in range(cols):
                 want = per_cell - counts[r, c]
@@ -222,35 +258,70 @@ class KLTTracker(_TrackStore):
                                                 qualityLevel=cfg.quality_level, minDistance=cfg.min_distance_px,
                                                 mask=roi_m, blockSize=5)
                 if found is not None:
-                    out.append(found.reshape(-1, 2) + [xs[c], ys[r]])
-        if not out:
-            return np.zeros((0, 2), np.float32)
-        return np.concatenate(out).astype(np.float32)
+                    yield (found.reshape(-1, 2) + [xs[c], ys[r]]).astype(np.float32)
+
+    def _detection_mask(self, shape: tuple[int, int], mask: np.ndarray | None) -> np.ndarray:
+        """255 where a new corner may go: inside the border, the mask and away from the live tracks. The part
+        without the tracks is kept while the same mask object (or none) comes with frames of one size."""
+        base = self._base_mask
+        if base is None or base[0] != shape or base[1] is not mask:
+            h, w = shape
+            b = self.cfg.border_px
+            m = np.zeros((h, w), np.uint8)
+            m[b : h - b, b : w - b] = 255
+            if mask is not None:
+                m &= np.where(mask > 0, 255, 0).astype(np.uint8)
+            base = self._base_mask = (shape, mask, m)
+        m = base[2].copy()
+        r = round(self.cfg.min_distance_px)
+        for x, y in self.pts.astype(int):
+            cv2.circle(m, (int(x), int(y)), r, 0, -1)
+        return m
+
+    def _new_corners(self, image: np.ndarray, mask: np.ndarray | None, need: int) -> np.ndarray:
+        """The new corners (K, 2) float32 in the order ``grid_select`` would take them from every short cell's.
+
+        In the ``rows`` order each cell's corners are taken before the next cell's are needed, so detection
+        stops at the cell that fills the budget (on KITTI after 24 of 41 short cells); ``spread`` needs all.
+        The cells' corners are taken in batches, once they could fill the budget (the same choice, ``GridFill``)."""
+        cfg = self.cfg
+        h, w = image.shape[:2]
+        cells = self._cell_candidates(image, self._detection_mask((h, w), mask))
+        per_cell = int(np.ceil(1.5 * cfg.max_features / (cfg.grid_cols * cfg.grid_rows)))
+        if cfg.detection_order is DetectionOrder.SPREAD:
+            found = list(cells)
+            if not found:
+                return np.zeros((0, 2), np.float32)
+            cand = np.concatenate(found)
+            sel = grid_select(cand, self.pts, (h, w), cfg.grid_cols, cfg.grid_rows, need, per_cell,
+                              cfg.detection_order)
+            return cand[sel]
+        fill = GridFill(self.pts, (h, w), cfg.grid_cols, cfg.grid_rows, need, per_cell)
+        taken: list[np.ndarray] = []
+        pending: list[np.ndarray] = []
+        n_pending = 0
+        for cand in cells:
+            pending.append(cand)
+            n_pending += len(cand)
+            if n_pending >= fill.room:  # the budget may be full now: take (a batch costs the same as one cell)
+                batch = np.concatenate(pending)
+                taken.append(batch[fill.take(batch)])
+                pending, n_pending = [], 0
+                if fill.full:
+                    break
+        if pending:
+            batch = np.concatenate(pending)
+            taken.append(batch[fill.take(batch)])
+        return np.concatenate(taken) if taken else np.zeros((0, 2), np.float32)
 
     def _detect(self, image: np.ndarray, mask: np.ndarray | None) -> int:
         cfg = self.cfg
         need = cfg.max_features - len(self.ids)
         if need < max(5, cfg.max_features // 10):
             return 0
-        h, w = image.shape[:2]
-        b = cfg.border_px
-        m = np.zeros((h, w), np.uint8)
-        m[b : h - b, b : w - b] = 255
-        if mask is not None:
-            m &= np.where(mask > 0, 255, 0).astype(np.uint8)
-        r = round(cfg.min_distance_px)
-        for x, y in self.pts.astype(int):
-            cv2.circle(m, (int(x), int(y)), r, 0, -1)
-        cand = self._grid_candidates(image, m, need)
-        if len(cand) == 0:
+        new_pts = self._new_corners(image, mask, need)
+        if len(new_pts) == 0:
             return 0
-        cells = cfg.grid_cols * cfg.grid_rows
-        per_cell = int(np.ceil(1.5 * cfg.max_features / cells))
-        sel = grid_select(cand, self.pts, (h, w), cfg.grid_cols, cfg.grid_rows, need, per_cell,
-                          cfg.detection_order)
-        if sel.size == 0:
-            return 0
-        new_pts = cand[sel].astype(np.float32)
         crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
         new_pts = cv2.cornerSubPix(image, new_pts.reshape(-1, 1, 2), (3, 3), (-1, -1), crit).reshape(-1, 2)
         new_ids = np.arange(self.next_id, self.next_id + len(new_pts), dtype=np.int64)
