@@ -114,10 +114,19 @@ class FrontendConfig(_Section):
 
 class KeyframeConfig(_Section):
     min_parallax_px: float = Field(20.0, gt=0, description="new keyframe when the median parallax to the last keyframe "
-                                                           "exceeds this")
+                                                           "exceeds this (pixels; see keyframes.parallax_focal_px)")
     min_tracked_ratio: float = Field(0.6, gt=0, lt=1, description="... or when fewer than this share of the keyframe's "
-                                                                  "tracks survive")
+                                                                  "tracks survive (of those keyframes.min_track_age "
+                                                                  "old)")
     max_interval_s: float = Field(1.0, gt=0, description="... or after this long (never while standing still)")
+    parallax_focal_px: float | None = Field(
+        None, gt=0, description="a focal length (px) makes min_parallax_px an angle, min_parallax_px / "
+        "parallax_focal_px (340: 20 px is 3.4 deg, 41.6 px at KITTI's 707 px; fewer keyframes in fast turns, worse "
+        "without wheels: docs/performance.md, Keyframes by information); null: pixels of the camera")
+    min_track_age: int = Field(0, ge=0, description="track loss counts only the keyframe's tracks at least this "
+                               "many frames old when it was taken (1: fresh corners lost at once, as in fast forward "
+                               "motion, make no keyframe; fewer keyframes but fewer landmarks: see docs/performance.md, "
+                               "Keyframes by information); 0: all of them")
     standstill_parallax_px: float = Field(1.0, ge=0, description="standing still: median parallax below this ...")
     standstill_distance_m: float = Field(0.01, ge=0, description="... and wheel distance since the keyframe below this "
                                                                  "...")

@@ -29,7 +29,7 @@ from ..camera import CameraModel
 from ..config import FrontendConfig, GateConfig, KeyframeConfig, TrackerKind
 from ..runtime.stage_timer import Laps, Stage, section
 from ..types import Frame, FrontendOutput, KeyframeReason
-from .gates import MIN_COMMON_TRACKS, apply_gates, keyframe_reason
+from .gates import MIN_COMMON_TRACKS, TrackShare, apply_gates, keyframe_reason
 from .tracker import KLTTracker, ORBTracker, cell_counts
 from .two_view import TwoViewResult, essential_ransac, recover_relative_pose
 
@@ -230,6 +230,7 @@ class VersusKeyframe:
     """What comparing a frame's tracks with the last keyframe's found (``Frontend._against_keyframe``)."""
 
     n_common: int = 0
+    n_common_established: int = 0  # of them, tracks already established at the keyframe
     parallax_px: float = 0.0
     two_view: TwoViewResult | None = None
     kf_pair: tuple[np.ndarray, np.ndarray] | None = None  # the shared tracks' rays at the keyframe and now
@@ -261,6 +262,7 @@ class Frontend:
         self.gain = GainNormalizer(cfg.gain_target) if cfg.gain_normalization else None
         self.kf_ids: np.ndarray | None = None
         self.kf_xn: np.ndarray | None = None
+        self.kf_established: np.ndarray | None = None  # the keyframe's tracks of at least keyframes.min_track_age
         self.kf_time = 0.0
         self.focal = 0.5 * (camera.fx + camera.fy)
 
@@ -301,9 +303,10 @@ class Frontend:
         lap(Stage.UNDISTORTION)  # mostly the undistorted pixels and their noise scales
         if two_view is not None:
             out.inlier_ratio = float(two_view.inlier_mask.mean())
-        reason = (KeyframeReason.FIRST if self.kf_ids is None
-                  else keyframe_reason(out, n_common, len(self.kf_ids), self.kf_time, odom_motion, force_keyframe,
-                                       self.kf_cfg))
+        reason = KeyframeReason.FIRST
+        if self.kf_ids is not None and self.kf_established is not None:
+            share = TrackShare(n_common, len(self.kf_ids), vs_kf.n_common_established, int(self.kf_established.sum()))
+            reason = keyframe_reason(out, share, self.kf_time, odom_motion, force_keyframe, self.focal, self.kf_cfg)
         if reason not in (KeyframeReason.NONE, KeyframeReason.FIRST) and two_view is not None and kf_pair is not None:
             # Pose recovery (cheirality, rotation-compensated parallax) only where the gates need it.
             recover_relative_pose(two_view, kf_pair[0], kf_pair[1], self.focal)
@@ -315,6 +318,7 @@ class Frontend:
         if out.is_keyframe:
             self.kf_ids = out.track_ids.copy()
             self.kf_xn = xn.copy()
+            self.kf_established = out.track_ages >= self.kf_cfg.min_track_age
             self.kf_time = frame.timestamp
         lap(Stage.KEYFRAME)
         out.frontend_ms = (time.perf_counter() - t0) * 1000.0
@@ -353,6 +357,8 @@ class Frontend:
             return tracks, xn, vs
         common, i_cur, i_kf = np.intersect1d(tracks.ids, self.kf_ids, return_indices=True)
         vs.n_common = len(common)
+        if self.kf_established is not None:
+            vs.n_common_established = int(self.kf_established[i_kf].sum())
         kf_xn = self.kf_xn
         if vs.n_common:
             d = (xn[i_cur] - kf_xn[i_kf]) * self.focal

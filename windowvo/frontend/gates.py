@@ -8,6 +8,8 @@ candidate (features, spread, inlier ratio, rotation-compensated parallax, cheira
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from ..config import GateConfig, KeyframeConfig
 from ..types import FrontendOutput, GateOutcome, KeyframeReason
 
@@ -15,11 +17,37 @@ from ..types import FrontendOutput, GateOutcome, KeyframeReason
 MIN_COMMON_TRACKS = 8
 
 
-def keyframe_reason(out: FrontendOutput, n_common: int, n_keyframe_tracks: int, keyframe_time: float,
-                    odom_motion: tuple[float, float] | None, force: bool, kc: KeyframeConfig) -> KeyframeReason:
+@dataclass(frozen=True)
+class TrackShare:
+    """How many of the last keyframe's tracks this frame still shares, over all of them and over the ones
+    established at the keyframe (``keyframes.min_track_age``)."""
+
+    n_common: int
+    n_keyframe: int
+    n_common_established: int
+    n_keyframe_established: int
+
+    def tracked_ratio(self) -> float:
+        """Share of the keyframe's established tracks still tracked (of all its tracks if it had too few)."""
+        if self.n_keyframe_established >= MIN_COMMON_TRACKS:
+            return self.n_common_established / self.n_keyframe_established
+        return self.n_common / max(self.n_keyframe, 1)
+
+
+def parallax_threshold_px(kc: KeyframeConfig, focal_px: float) -> float:
+    """The median parallax (pixels of a camera of focal length ``focal_px``) that makes a keyframe: the angle
+    ``min_parallax_px / parallax_focal_px``, so a longer lens needs proportionally more pixels; without
+    ``parallax_focal_px``, ``min_parallax_px`` of the camera's own pixels."""
+    if kc.parallax_focal_px is None:
+        return kc.min_parallax_px
+    return kc.min_parallax_px * focal_px / kc.parallax_focal_px
+
+
+def keyframe_reason(out: FrontendOutput, share: TrackShare, keyframe_time: float,
+                    odom_motion: tuple[float, float] | None, force: bool, focal_px: float,
+                    kc: KeyframeConfig) -> KeyframeReason:
     """Why this frame should be a keyframe (``KeyframeReason.NONE``: it should not); sets ``out.standstill``.
-    ``n_common``: tracks shared with the last keyframe, which had ``n_keyframe_tracks`` at ``keyframe_time``."""
-    tracked_ratio = n_common / max(n_keyframe_tracks, 1)
+    ``share``: tracks shared with the last keyframe (taken at ``keyframe_time``)."""
     wheels_still = odom_motion is None or (
         odom_motion[0] < kc.standstill_distance_m and odom_motion[1] < kc.standstill_rotation_rad
     )
@@ -27,15 +55,15 @@ def keyframe_reason(out: FrontendOutput, n_common: int, n_keyframe_tracks: int, 
     # track lost at once: a sudden occlusion, a light switched) it is undefined, not zero, and the loss
     # must make a keyframe, or the keyframe reference is never renewed and no keyframe follows for the
     # rest of a run without wheels.
-    out.standstill = n_common >= MIN_COMMON_TRACKS and out.parallax_px < kc.standstill_parallax_px \
+    out.standstill = share.n_common >= MIN_COMMON_TRACKS and out.parallax_px < kc.standstill_parallax_px \
         and wheels_still
     if force:
         return KeyframeReason.LAST
     if out.standstill:
         return KeyframeReason.NONE
-    if out.parallax_px >= kc.min_parallax_px:
+    if out.parallax_px >= parallax_threshold_px(kc, focal_px):
         return KeyframeReason.PARALLAX
-    if tracked_ratio < kc.min_tracked_ratio:
+    if share.tracked_ratio() < kc.min_tracked_ratio:
         return KeyframeReason.TRACK_LOSS
     if out.timestamp - keyframe_time >= kc.max_interval_s:
         return KeyframeReason.INTERVAL
