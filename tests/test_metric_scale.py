@@ -27,8 +27,9 @@ pytestmark = pytest.mark.slow
 OFF = {"ground": {"enabled": False}, "wheel_calibration": {"enabled": False}}
 
 
-def _run(seq, out, **backend):
-    rep = run_job(make_config(seq, out, backend=backend) if backend else make_config(seq, out))
+def _run(seq, out, max_frames=None, **backend):
+    sections = ({"backend": backend} if backend else {}) | ({"max_frames": max_frames} if max_frames else {})
+    rep = run_job(make_config(seq, out, **sections))
     assert rep.accuracy is not None and rep.result.n_resets == 0
     return rep
 
@@ -39,6 +40,13 @@ def _final_wheel_scale(out) -> float:
     col = header.index("wheel_scale")
     vals = [float(r.split(",")[col]) for r in lines[1:] if r.split(",")[col] not in ("", "nan")]
     return vals[-1]
+
+
+# Most loops here are the loop of tests/test_robustness.py (LOOP, 25 s, seed 51) with other wheels, a claimed mount
+# or a hidden floor, made from its render (tests/conftest.py). Not test_scale_error_is_gone's: on this loop its first
+# bound fails with either scale error (SE3 ATE 0.0100 > 1.3 x Sim3 0.0073 m with +2%, 0.0138 > 1.3 x 0.0087 m with -3%,
+# the wheel scale learnt within 0.1-0.2%), on seeds 31 and 32 it holds.
+LOOP = dict(path=PathKind.LOOP, duration_s=25.0, seed=51)
 
 
 @pytest.mark.parametrize("name,path,scale_error,seed", [("loop_plus2", PathKind.LOOP, 0.02, 31),
@@ -91,8 +99,7 @@ def test_mount_pitched_against_its_calibration(seq_factory, tmp_path):
     """A camera pitched 1 deg off its T_base_cam: the floor's tilt in the base frame shows it; with
     ground.mount_calibration off the run warns and its scale is off, by default (auto) the run switches to
     the learnt normal and is better than without the ground cue, and with it on the scale error is gone."""
-    tilted = seq_factory("loop_mount", path=PathKind.LOOP, duration_s=25.0, seed=39, calib_pitch_error_deg=1.0,
-                         wheel=WheelErrorModel(scale_error=0.02))
+    tilted = seq_factory("loop_mount", **LOOP, calib_pitch_error_deg=1.0, wheel=WheelErrorModel(scale_error=0.02))
     plain = _run(tilted, tmp_path / "plain", ground={"mount_calibration": "off"})
     auto = _run(tilted, tmp_path / "auto")
     fixed = _run(tilted, tmp_path / "fixed", ground={"mount_calibration": True})
@@ -128,7 +135,7 @@ def test_mount_pitched_against_its_calibration(seq_factory, tmp_path):
 
 
 def test_monocular_with_camera_height_is_metric(seq_factory, tmp_path):
-    seq = seq_factory("mono_loop", path=PathKind.LOOP, duration_s=25.0, seed=34)
+    seq = seq_factory("mono_loop", **LOOP)
     rep = _run(seq, tmp_path / "mono", use_odometry=False)
     a = rep.accuracy
     print(f"monocular + camera height: ATE SE3 {a.ate_se3_rmse_m:.4f} over {a.path_length_m:.1f} m")
@@ -148,14 +155,15 @@ KERBS = dict(path=PathKind.LOOP, duration_s=25.0, seed=36, floor_contrast=0.3, k
 def test_no_worse_where_the_floor_assumption_breaks(seq_factory, tmp_path, case):
     """``kerbs``: textured platforms 3 cm high (6.7% of the camera height) line the path and the floor is poorly
     textured, so many floor candidates lie on the platforms (KITTI's raised pavements, docs/performance.md); wheels +2%."""
-    kw = {"ramp": dict(path=PathKind.RAMP, duration_s=25.0, seed=35),
+    # ramp: the first 25 s of the 30 s ramp of tests/test_pipeline.py (one render)
+    kw = {"ramp": dict(path=PathKind.RAMP, duration_s=30.0, seed=23),
           "featureless_floor": dict(path=PathKind.LOOP, duration_s=25.0, seed=36, floor_contrast=0.0),
           "kerbs": KERBS,
-          "slip": dict(path=PathKind.LOOP, duration_s=25.0, seed=37,
-                       wheel=WheelErrorModel(slip_windows=[(6.0, 8.0, 0.4), (15.0, 16.5, 0.5)]))}[case]
+          "slip": dict(LOOP, wheel=WheelErrorModel(slip_windows=[(6.0, 8.0, 0.4), (15.0, 16.5, 0.5)]))}[case]
     seq = seq_factory(case, **kw)
-    on = _run(seq, tmp_path / "on").accuracy
-    off = _run(seq, tmp_path / "off", **OFF).accuracy
+    frames = 501 if case == "ramp" else None
+    on = _run(seq, tmp_path / "on", frames).accuracy
+    off = _run(seq, tmp_path / "off", frames, **OFF).accuracy
     print(f"{case}: ATE SE3 with the ground cue {on.ate_se3_rmse_m:.4f}, without {off.ate_se3_rmse_m:.4f}")
     assert on.ate_se3_rmse_m <= 1.1 * off.ate_se3_rmse_m, (on, off)
 
@@ -208,7 +216,7 @@ def test_monocular_run_becomes_metric_when_the_floor_comes_into_view(seq_factory
     3 s) is up to scale at first; once the floor is in view its scale is fixed there, the trajectory so far is
     rescaled, and the whole run is metric. Before, such a run stayed up to scale to the end."""
     hidden = 90
-    seq = seq_factory("mono_loop_floor_late", path=PathKind.LOOP, duration_s=25.0, seed=34, floor_hidden_frames=hidden)
+    seq = seq_factory("mono_loop_floor_late", **LOOP, floor_hidden_frames=hidden)
     r = run_and_report(make_config(seq, tmp_path / "out", backend={"use_odometry": False}))
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     a = summary["accuracy"]

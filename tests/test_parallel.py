@@ -30,9 +30,10 @@ def test_pipelined_equals_sequential(short_loop, seq_factory, tmp_path, case):
                           vibration_deg=1.0, calib_pitch_error_deg=0.5)
         backend = {"ground": {"mount_calibration": True}}
     if case == "tilted_mount_auto":
-        seq = seq_factory("short_tilted", path=PathKind.LOOP, duration_s=12.0, seed=9, calib_pitch_error_deg=1.0)
+        # short_loop's images (tests/conftest.py shares the render) with a camera.yaml 1 deg off
+        seq = seq_factory("short_tilted", path=PathKind.LOOP, duration_s=12.0, seed=5, calib_pitch_error_deg=1.0)
     if case == "monocular_floor_late":
-        seq = seq_factory("short_floor_late", path=PathKind.LOOP, duration_s=12.0, seed=10, floor_hidden_frames=40)
+        seq = seq_factory("short_floor_late", path=PathKind.LOOP, duration_s=12.0, seed=5, floor_hidden_frames=40)
         backend = {"use_odometry": False}
     reps = {}
     for mode in ("sequential", "pipelined"):
