@@ -236,3 +236,39 @@ def test_view_web_ctrl_c_exits_130(sequence, tmp_path):
             proc.communicate()
     assert proc.returncode == 130, err[-3000:]
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err[-3000:]
+
+
+def _alive(pid: int) -> bool:
+    """The process exists and is not a zombie."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_stopping_the_viewer_stops_its_whole_process_group(tmp_path):
+    """A viewer whose launcher starts a process that ignores Ctrl-C (as a busy viewer binary may): the stop
+    reaches and ends that process too, within the bounded waits, not only the launcher."""
+    from windowvo.viz import viewer
+
+    pid_file = tmp_path / "grandchild.pid"
+    launcher = ("import subprocess, sys, time\n"
+                "c = subprocess.Popen([sys.executable, '-c', 'import signal, time; "
+                "signal.signal(signal.SIGINT, signal.SIG_IGN); time.sleep(120)'])\n"
+                f"open({str(pid_file)!r}, 'w').write(str(c.pid))\n"
+                "time.sleep(120)\n")
+    proc = subprocess.Popen([sys.executable, "-c", launcher], start_new_session=True)
+    deadline = time.monotonic() + 20.0
+    while not (pid_file.is_file() and pid_file.read_text()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    grandchild = int(pid_file.read_text())
+    assert _alive(grandchild)
+    t0 = time.monotonic()
+    viewer._stop(proc)
+    assert time.monotonic() - t0 <= 2 * viewer.STOP_WAIT_S + 2.0
+    assert proc.poll() is not None
+    deadline = time.monotonic() + 5.0
+    while _alive(grandchild) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(grandchild)

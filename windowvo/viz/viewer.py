@@ -6,6 +6,7 @@ The command line (``python -m windowvo.view``) is a thin wrapper over :func:`ope
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import subprocess
 import sys
@@ -37,14 +38,24 @@ def viewer_command(rrd: Path, web: bool) -> list[str]:
     return cmd
 
 
+def _signal_group(proc: subprocess.Popen, sig: int) -> None:
+    """Send ``sig`` to the viewer's process group (rerun's launcher and the viewer binary it starts)."""
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(proc.pid, sig)
+
+
 def _stop(proc: subprocess.Popen) -> None:
-    """Let the viewer stop on the Ctrl-C it got too; kill it if it does not, and reap it."""
+    """Pass the Ctrl-C on to the viewer's process group; kill the group if it has not stopped in
+    ``STOP_WAIT_S``, and reap it. The whole group: killing the launcher alone can leave the viewer binary
+    serving, and holding our output open."""
+    _signal_group(proc, signal.SIGINT)
     try:
         proc.wait(timeout=STOP_WAIT_S)
     except subprocess.TimeoutExpired:
-        proc.kill()
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            proc.wait(timeout=STOP_WAIT_S)
+        pass
+    _signal_group(proc, signal.SIGKILL)  # whatever of the group is left (the launcher may be gone already)
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        proc.wait(timeout=STOP_WAIT_S)
 
 
 def open_recording(path: Path, web: bool = False) -> int:
@@ -56,7 +67,8 @@ def open_recording(path: Path, web: bool = False) -> int:
         raise ViewerError(f"no display to open the viewer window (neither DISPLAY nor WAYLAND_DISPLAY is set): "
                           f"{WEB_HINT}")
     try:
-        proc = subprocess.Popen(viewer_command(rrd, web))
+        # A process group of its own, so that a stop reaches every process of the viewer (see _stop).
+        proc = subprocess.Popen(viewer_command(rrd, web), start_new_session=True)
     except OSError as err:
         raise ViewerError(f"cannot start rerun's viewer ({err})") from None
     try:
