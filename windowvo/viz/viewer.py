@@ -49,10 +49,8 @@ def _stop(proc: subprocess.Popen) -> None:
     ``STOP_WAIT_S``, and reap it. The whole group: killing the launcher alone can leave the viewer binary
     serving, and holding our output open."""
     _signal_group(proc, signal.SIGINT)
-    try:
+    with contextlib.suppress(subprocess.TimeoutExpired):
         proc.wait(timeout=STOP_WAIT_S)
-    except subprocess.TimeoutExpired:
-        pass
     _signal_group(proc, signal.SIGKILL)  # whatever of the group is left (the launcher may be gone already)
     with contextlib.suppress(subprocess.TimeoutExpired):
         proc.wait(timeout=STOP_WAIT_S)
