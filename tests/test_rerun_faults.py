@@ -233,7 +233,8 @@ def test_view_web_ctrl_c_exits_130(sequence, tmp_path):
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
+            with contextlib.suppress(subprocess.TimeoutExpired):  # bounded: a leftover could hold the pipes
+                proc.communicate(timeout=10.0)
     assert proc.returncode == 130, err[-3000:]
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err[-3000:]
 
@@ -247,7 +248,7 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
-def test_stopping_the_viewer_stops_its_whole_process_group(tmp_path):
+def test_stopping_the_viewer_stops_what_it_started(tmp_path):
     """A viewer whose launcher starts a process that ignores Ctrl-C (as a busy viewer binary may): the stop
     reaches and ends that process too, within the bounded waits, not only the launcher."""
     from windowvo.viz import viewer
@@ -258,14 +259,14 @@ def test_stopping_the_viewer_stops_its_whole_process_group(tmp_path):
                 "signal.signal(signal.SIGINT, signal.SIG_IGN); time.sleep(120)'])\n"
                 f"open({str(pid_file)!r}, 'w').write(str(c.pid))\n"
                 "time.sleep(120)\n")
-    proc = subprocess.Popen([sys.executable, "-c", launcher], start_new_session=True)
+    proc = subprocess.Popen([sys.executable, "-c", launcher])
     deadline = time.monotonic() + 20.0
     while not (pid_file.is_file() and pid_file.read_text()) and time.monotonic() < deadline:
         time.sleep(0.05)
     grandchild = int(pid_file.read_text())
     assert _alive(grandchild)
     t0 = time.monotonic()
-    viewer._stop(proc)
+    viewer._stop(proc, [])
     assert time.monotonic() - t0 <= 2 * viewer.STOP_WAIT_S + 2.0
     assert proc.poll() is not None
     deadline = time.monotonic() + 5.0

@@ -38,22 +38,45 @@ def viewer_command(rrd: Path, web: bool) -> list[str]:
     return cmd
 
 
-def _signal_group(proc: subprocess.Popen, sig: int) -> None:
-    """Send ``sig`` to the viewer's process group (rerun's launcher and the viewer binary it starts)."""
-    with contextlib.suppress(ProcessLookupError, PermissionError):
-        os.killpg(proc.pid, sig)
+def _descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (Linux: ``/proc/<pid>/task/<tid>/children``; elsewhere none are found)."""
+    found: list[int] = []
+    todo = [pid]
+    while todo:
+        parent = todo.pop()
+        for children in Path(f"/proc/{parent}/task").glob("*/children"):
+            with contextlib.suppress(OSError, ValueError):
+                kids = [int(c) for c in children.read_text().split()]
+                found += kids
+                todo += kids
+    return found
 
 
-def _stop(proc: subprocess.Popen) -> None:
-    """Pass the Ctrl-C on to the viewer's process group; kill the group if it has not stopped in
-    ``STOP_WAIT_S``, and reap it. The whole group: killing the launcher alone can leave the viewer binary
-    serving, and holding our output open."""
-    _signal_group(proc, signal.SIGINT)
+def _stop(proc: subprocess.Popen, started: list[int]) -> None:
+    """Let the viewer stop on the Ctrl-C (passed on to it, in case only this process got one); after at most
+    ``STOP_WAIT_S`` kill what is left of it and of the processes it started (``started``, as last seen, and any
+    below it now: rerun's launcher starts the viewer binary, and a launcher gone alone can leave the binary
+    serving, and holding our output open), and reap it."""
+    below = list(dict.fromkeys([*started, *_descendants(proc.pid)]))
+    with contextlib.suppress(ProcessLookupError):
+        proc.send_signal(signal.SIGINT)
     with contextlib.suppress(subprocess.TimeoutExpired):
         proc.wait(timeout=STOP_WAIT_S)
-    _signal_group(proc, signal.SIGKILL)  # whatever of the group is left (the launcher may be gone already)
+    for pid in [*below, proc.pid]:
+        if pid != proc.pid or proc.poll() is None:  # never signal the launcher's pid once it is reaped
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(pid, signal.SIGKILL)
     with contextlib.suppress(subprocess.TimeoutExpired):
         proc.wait(timeout=STOP_WAIT_S)
+
+
+def _wait(proc: subprocess.Popen, started: list[int]) -> int:
+    """The viewer's exit code; meanwhile ``started`` holds the processes it started, as last seen."""
+    while True:
+        try:
+            return proc.wait(timeout=1.0)
+        except subprocess.TimeoutExpired:
+            started[:] = _descendants(proc.pid) or started
 
 
 def open_recording(path: Path, web: bool = False) -> int:
@@ -65,14 +88,14 @@ def open_recording(path: Path, web: bool = False) -> int:
         raise ViewerError(f"no display to open the viewer window (neither DISPLAY nor WAYLAND_DISPLAY is set): "
                           f"{WEB_HINT}")
     try:
-        # A process group of its own, so that a stop reaches every process of the viewer (see _stop).
-        proc = subprocess.Popen(viewer_command(rrd, web), start_new_session=True)
+        proc = subprocess.Popen(viewer_command(rrd, web))  # in our process group: a terminal's Ctrl-C reaches it
     except OSError as err:
         raise ViewerError(f"cannot start rerun's viewer ({err})") from None
+    started: list[int] = []
     try:
-        code = proc.wait()
+        code = _wait(proc, started)
     except KeyboardInterrupt:
-        _stop(proc)
+        _stop(proc, started)
         return 128 + signal.SIGINT
     if code != 0 and not web:
         raise ViewerError(f"the viewer exited with code {code} (see its message above); on a machine without "
