@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import fcntl
 import os
 import shutil
 import signal
@@ -44,6 +45,17 @@ class Ran:
 @pytest.fixture(scope="module")
 def sequence(seq_factory) -> Path:
     return seq_factory("faults_loop", path=PathKind.LOOP, duration_s=3.0, seed=5, width=320, height=240)
+
+
+@pytest.fixture(autouse=True)
+def one_at_a_time(tmp_path_factory):
+    """These tests use rerun's fixed ports (9876, 9090) and look for leftover viewers: never two of them at once,
+    across the xdist workers (a spawned viewer on 9876 beside a served web viewer made `--web` + Ctrl-C hang)."""
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    with open(root / "rerun_ports.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
 
 
 @pytest.fixture(scope="module")
