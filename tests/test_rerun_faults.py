@@ -221,6 +221,21 @@ def test_view_without_a_display_says_use_web(sequence, tmp_path):
     assert len(lines) == 1 and lines[0].startswith("windowvo.view: error:") and "--web" in lines[0], r.stderr
 
 
+def _terminal_sigint() -> None:
+    """In the child before it starts: Ctrl-C as a terminal's program gets it (default action, not blocked), whatever
+    the test worker's threads inherited (a worker process started beside them blocks it for a moment)."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _signal_state(pid: int) -> str:
+    """The kernel's view of a process's signals (blocked, ignored, caught), for a failure message."""
+    with contextlib.suppress(OSError):
+        return " ".join(line for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+                        if line.startswith(("SigBlk", "SigIgn", "SigCgt")))
+    return "(gone)"
+
+
 @pytest.mark.slow
 def test_view_web_ctrl_c_exits_130(sequence, tmp_path):
     r0 = _run_vo(sequence, tmp_path / "o", "viz.rerun=save", "max_frames=10")
@@ -232,7 +247,8 @@ def test_view_web_ctrl_c_exits_130(sequence, tmp_path):
         except OSError:
             pytest.skip("port 9090 is taken: the web viewer cannot be served here")
     proc = subprocess.Popen([sys.executable, "-m", "windowvo.view", str(r0.out), "--web"], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=_env(), start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, env=_env(), start_new_session=True,
+                            preexec_fn=_terminal_sigint)
     try:
         deadline = time.monotonic() + 30.0
         while time.monotonic() < deadline and proc.poll() is None:
@@ -240,8 +256,12 @@ def test_view_web_ctrl_c_exits_130(sequence, tmp_path):
                 break
             time.sleep(0.2)
         assert proc.poll() is None, proc.communicate()[1][-3000:]
+        state = _signal_state(proc.pid)
         os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole foreground group
-        _out, err = proc.communicate(timeout=20.0)
+        try:
+            _out, err = proc.communicate(timeout=20.0)
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"windowvo.view --web did not end within 20 s of Ctrl-C; its signals then: {state}")
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
