@@ -36,3 +36,11 @@ def test_one_pair_of_whole_processes(tmp_path):
         assert p.wall_s > 0 and p.cpu_s > 0 and math.isfinite(p.ate_se3_m)
     assert row.windowvo.ate_se3_m < 0.05  # windowvo on a clean 2 s loop (about 1.6 m)
     assert (tmp_path / "out" / "windowvo_0" / "recording.rrd").is_file()  # the recording was on
+
+
+def test_no_repeats_is_one_line(tmp_path, capsys):
+    from windowvo.cli.bench import main
+
+    assert main(["--suite", "speed", "--repeats", "0", "--out", str(tmp_path / "o"), "--cache", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("windowvo.bench: error:") and "--repeats" in err[0]

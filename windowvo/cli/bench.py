@@ -180,6 +180,9 @@ def _bag(cache: Path, out: Path) -> dict:
 def main(argv=None) -> int:
     a = _parser().parse_args(argv)
     out, cache = Path(a.out), Path(a.cache)
+    if a.repeats < 1:
+        print(f"windowvo.bench: error: --repeats must be at least 1 (got {a.repeats})", file=sys.stderr)
+        return 2
     if a.set:  # a bad key or value is one line and exit 2, before anything is rendered or run
         try:
             config_from_dict(apply_overrides({"sequence": ".", "output": str(out), "progress": False}, list(a.set)))

@@ -141,7 +141,11 @@ def speed_table(rows: list[SpeedRow]) -> str:
 
 
 def bench_speed(cache: Path, out: Path, repeats: int = 3) -> dict:
-    """Every speed case, one after the other (never in parallel: they are timed)."""
+    """Every speed case, one after the other (never in parallel: they are timed). The folders are made absolute:
+    each process reads a config file written under ``out``, whose relative paths would be taken from there."""
+    if repeats < 1:
+        raise ValueError(f"--repeats must be at least 1 (got {repeats})")
+    cache, out = cache.resolve(), out.resolve()
     rows = [run_speed_case(c, cache, out / "speed" / c.name, repeats) for c in speed_cases()]
     print("## Whole-process speed against frame-to-frame chaining (issue #30)\n")
     print(speed_table(rows) + "\n")
