@@ -9,12 +9,12 @@ from __future__ import annotations
 import contextlib
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..config import Config, RerunMode, RunMode
 from ..errors import WindowVOError
-from ..eval.metrics import AccuracyReport
 from ..io.sequence import Sequence
 from ..io.trajectory import Trajectory
 from . import stop
@@ -23,6 +23,9 @@ from .outputs import summary_dict, summary_lines, write_outputs, write_summary
 from .parallel import BackendWorker
 from .pipeline import Pipeline, RunResult
 from .progress import Progress
+
+if TYPE_CHECKING:  # evo (and scipy under it) is loaded only to evaluate, after the run: a run without ground truth
+    from ..eval.metrics import AccuracyReport  # never pays its import (about 0.4 s)
 
 log = logging.getLogger("windowvo")
 

@@ -24,11 +24,11 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..backend.report import ScaleReport, plan_scale
-from ..backend.smoother import SlidingWindowBackend
 from ..backend.wheel_clock import ClockEstimate, WheelClock
 from ..camera import CameraModel
 from ..config import Config, load_robot_config, robot_config_from_dict
@@ -39,6 +39,9 @@ from ..geometry import interpolate_T
 from ..io.odometry import WheelBuffer, WheelOdometry
 from ..io.trajectory import Trajectory
 from ..types import BackendOutput, BackendStatus, Frame, FrameEstimate, FrontendOutput, OdometryStep
+
+if TYPE_CHECKING:  # GTSAM is loaded only where a back end runs: a pipelined run's main process never needs it
+    from ..backend.smoother import SlidingWindowBackend
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +69,12 @@ class TrackedFrame:
         return self.frontend is not None and self.frontend.is_keyframe
 
 
+def _new_backend(camera: CameraModel, cfg: Config, use_odometry: bool) -> SlidingWindowBackend:
+    from ..backend.smoother import SlidingWindowBackend
+
+    return SlidingWindowBackend(camera, cfg.backend, use_odometry)
+
+
 def default_config() -> Config:
     """The default configuration, for callers that have no config file (no sequence, no output)."""
     return robot_config_from_dict({})
@@ -88,8 +97,7 @@ class Odometry:
         self.plan = plan_scale(camera, cfg.backend, self.use_odometry)
         self.backend: SlidingWindowBackend | None = None
         if not remote_backend:
-            self.backend = backend if backend is not None else SlidingWindowBackend(camera, cfg.backend,
-                                                                                    self.use_odometry)
+            self.backend = backend if backend is not None else _new_backend(camera, cfg, self.use_odometry)
         floor_only = self.plan.use_ground and not self.use_odometry  # the floor is the only scale source
         order = resolve_detection_order(cfg.frontend.detection_order, floor_only)
         self.frontend = Frontend(camera, cfg.frontend.model_copy(update={"detection_order": order}), cfg.keyframes,
