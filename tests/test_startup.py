@@ -1,0 +1,33 @@
+"""What a run's main process loads before its first frame: GTSAM lives in the back-end process, evo (and scipy
+under it) only in the evaluation after the run. Each is 0.1-0.4 s of start-up (docs/performance.md)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+HEAVY = ("gtsam", "evo", "scipy")
+
+
+def _loaded_after(code: str) -> list[str]:
+    probe = f"import sys; {code}; print(' '.join(m for m in {HEAVY!r} if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True)
+    return out.stdout.split()
+
+
+def test_the_job_module_loads_no_back_end_and_no_evaluator():
+    assert _loaded_after("import windowvo.runtime.job, windowvo.runtime.pipeline, windowvo.runtime.outputs") == []
+
+
+def test_a_remote_back_end_odometry_loads_no_gtsam():
+    """The pipelined run's main process builds an Odometry whose back end runs elsewhere."""
+    code = ("from windowvo.runtime.stream import Odometry; from windowvo.camera import CameraModel; "
+            "Odometry(CameraModel(64, 48, 50.0, 50.0, 32.0, 24.0), remote_backend=True)")
+    assert "gtsam" not in _loaded_after(code)
+
+
+def test_a_local_back_end_still_loads_it():
+    """The check above can fail: the same Odometry with its own back end does load GTSAM."""
+    code = ("from windowvo.runtime.stream import Odometry; from windowvo.camera import CameraModel; "
+            "Odometry(CameraModel(64, 48, 50.0, 50.0, 32.0, 24.0))")
+    assert "gtsam" in _loaded_after(code)
