@@ -11,8 +11,11 @@ every frame up to the last finished keyframe (``runtime/journal.py``; ``--resume
 
 from __future__ import annotations
 
+import contextlib
+import importlib
 import logging
 import os
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -105,6 +108,18 @@ def load_static_mask(path: Path | None, shape: tuple[int, int]) -> np.ndarray | 
     if m.shape != shape:
         raise SequenceError(f"mask {path.name} is {m.shape[1]}x{m.shape[0]}, images are {shape[1]}x{shape[0]}")
     return m
+
+
+def load_in_background(module: str) -> None:
+    """Import ``module`` in a thread of its own while this one waits for something else (the GIL is free then):
+    the evaluator's evo and scipy (about 0.4 s) while the back-end process finishes its last keyframes. A failure
+    is left to the real import, which raises it where it is used."""
+
+    def load() -> None:
+        with contextlib.suppress(Exception):
+            importlib.import_module(module)
+
+    threading.Thread(target=load, name="windowvo-preload", daemon=True).start()
 
 
 class Pipeline:
@@ -217,6 +232,8 @@ class Pipeline:
                     break
         n_signals = stop.count()
         self._give_up = lambda: stop.count() > n_signals  # one more signal: stop waiting for the back end
+        if self.worker is not None and self.seq.groundtruth is not None:
+            load_in_background("windowvo.eval.metrics")  # the evaluation's evo and scipy, while we wait
         self._drain(block=True)  # keyframes still with the back-end process
         if self.worker is not None:
             report = self.worker.finish(give_up=self._give_up)
