@@ -9,7 +9,11 @@ import numpy as np
 import pytest
 
 from windowvo.backend.wheel_clock import WheelClock, estimate_offset
+from windowvo.config import WheelClockMode, robot_config_from_dict
+from windowvo.errors import ConfigError
+from windowvo.geometry import inv_T, planar_T
 from windowvo.io.odometry import WheelOdometry
+from windowvo.runtime.stream import CLOCK_UPDATE_EVERY, Odometry
 
 
 def _drive(offset_s: float, turning: bool = True, seed: int = 0, yaw_scale: float = 0.03,
@@ -63,44 +67,142 @@ def test_an_unobservable_update_keeps_the_last_estimate():
     assert kept.offset_s == first.offset_s and kept.observable
 
 
-@pytest.fixture(scope="module")
-def figure_eight(tmp_path_factory):
-    """A rendered figure eight (turns both ways) and the same sequence with the wheel clock 30 ms late."""
-    from windowvo.synth.generate import SynthSpec, generate_sequence
-    from windowvo.synth.paths import PathKind
+def test_wheels_on_the_camera_clock_are_read_at_t_plus_the_offset():
+    _, wheels = _drive(0.03)
+    cam = wheels.on_camera_clock(0.03)
+    t = 7.123
+    i = int(np.searchsorted(wheels.timestamps, t + 0.03)) - 1  # the raw samples around t + offset, by hand
+    s = (t + 0.03 - wheels.timestamps[i]) / (wheels.timestamps[i + 1] - wheels.timestamps[i])
+    yaw = wheels.yaw[i] + s * (wheels.yaw[i + 1] - wheels.yaw[i])
+    x = wheels.x[i] + s * (wheels.x[i + 1] - wheels.x[i])
+    assert np.allclose(cam.pose_at(t), planar_T(float(x), wheels.y[i] + s * (wheels.y[i + 1] - wheels.y[i]),
+                                                float(yaw)), atol=1e-9)
+    assert wheels.on_camera_clock(0.0) is wheels
 
-    root = tmp_path_factory.mktemp("clock")
-    seq = root / "fig8"
-    generate_sequence(seq, SynthSpec(path=PathKind.FIGURE_EIGHT, duration_s=20.0, seed=5, width=320, height=240,
-                                     fx=170.0))
-    late = root / "fig8_late"
-    shutil.copytree(seq, late)
+
+def _stream(mode: str, offset_s: float = 0.03, fixed_ms: float | None = None):
+    """A streaming Odometry fed the wheels of ``_drive(offset_s)`` (its clock filled with the drive's intervals)."""
+    from windowvo.synth.generate import SynthSpec, camera_for
+
+    odo_cfg: dict = {"time_offset": mode} if fixed_ms is None else {"time_offset": mode, "time_offset_ms": fixed_ms}
+    vo = Odometry(camera_for(SynthSpec(width=160, height=120, fx=90.0)), robot_config_from_dict(
+        {"backend": {"odometry": odo_cfg}}))
+    clock, wheels = _drive(offset_s)
+    for t, x, y, yaw in zip(wheels.timestamps, wheels.x, wheels.y, wheels.yaw):
+        vo.add_wheel_odometry(float(t), float(x), float(y), float(yaw))
+    assert vo.clock is not None
+    for iv in clock.intervals:
+        vo.clock.add(iv.t0, iv.t1, iv.vision_yaw_rad)
+    return vo, wheels
+
+
+def _raw_delta(wheels: WheelOdometry, t0: float, t1: float) -> np.ndarray:
+    def pose(t):
+        return planar_T(*(float(np.interp(t, wheels.timestamps, a)) for a in (wheels.x, wheels.y, wheels.yaw)))
+    return inv_T(pose(t0)) @ pose(t1)
+
+
+def test_the_estimated_offset_is_applied_to_the_wheel_factors():
+    vo, wheels = _stream("estimate", 0.03)
+    vo.last_kf_time = 10.0
+    vo._update_offset(20.0)
+    assert abs(vo.wheel_offset_s - 0.03) < 0.003 and vo.offset_applied_since == 20.0
+    step = vo._odom_step(10.0, 10.4)
+    assert step is not None and step.ok
+    assert np.allclose(step.T_prev_cur, _raw_delta(wheels, 10.0 + vo.wheel_offset_s, 10.4 + vo.wheel_offset_s),
+                       atol=1e-9)
+    assert not np.allclose(step.T_prev_cur, _raw_delta(wheels, 10.0, 10.4), atol=1e-4)  # the offset matters here
+    # The standstill check reads the same shifted wheels.
+    dist, turn = vo._odom_since_kf(10.4)
+    d = _raw_delta(wheels, 10.0 + vo.wheel_offset_s, 10.4 + vo.wheel_offset_s)
+    assert dist == pytest.approx(np.hypot(d[0, 3], d[1, 3])) and turn == pytest.approx(abs(np.arctan2(d[1, 0], d[0, 0])))
+    rep = vo.wheel_time_offset()
+    assert rep is not None and rep.applied_s == vo.wheel_offset_s and rep.applied_since_t == 20.0
+
+
+def test_the_offset_is_re_estimated_only_every_few_new_intervals():
+    vo, _ = _stream("estimate", 0.03)
+    vo._update_offset(20.0)
+    first = vo.wheel_offset_s
+    for k in range(CLOCK_UPDATE_EVERY - 1):  # intervals that would move the estimate: not yet used
+        vo.clock.add(20.0 + 0.1 * k, 20.1 + 0.1 * k, 5.0)
+    vo._update_offset(21.0)
+    assert vo.wheel_offset_s == first
+
+
+def test_off_estimates_but_reads_the_wheels_at_the_camera_times():
+    vo, wheels = _stream("off", 0.03)
+    vo._update_offset(20.0)
+    assert vo.wheel_offset_s == 0.0 and vo.offset_applied_since is None
+    assert np.allclose(vo._odom_step(10.0, 10.4).T_prev_cur, _raw_delta(wheels, 10.0, 10.4), atol=1e-9)
+    rep = vo.wheel_time_offset()
+    assert rep is not None and rep.observable and abs(rep.offset_s - 0.03) < 0.003 and rep.applied_s is None
+
+
+def test_a_fixed_offset_is_applied_from_the_start():
+    vo, wheels = _stream("fixed", 0.03, fixed_ms=-12.5)
+    vo._update_offset(20.0)  # the estimate does not replace a given offset
+    assert vo.wheel_offset_s == -0.0125
+    assert np.allclose(vo._odom_step(10.0, 10.4).T_prev_cur, _raw_delta(wheels, 9.9875, 10.3875), atol=1e-9)
+
+
+def test_the_time_offset_keys_are_checked():
+    assert robot_config_from_dict({"backend": {"odometry": {"time_offset": False}}}).backend.odometry.time_offset \
+        is WheelClockMode.OFF  # YAML 1.1 reads a bare `off` as false
+    with pytest.raises(ConfigError, match="time_offset_ms is set but time_offset is 'estimate'"):
+        robot_config_from_dict({"backend": {"odometry": {"time_offset_ms": 15.0}}})
+    with pytest.raises(ConfigError):
+        robot_config_from_dict({"backend": {"odometry": {"time_offset": "fixed", "time_offset_ms": 5000.0}}})
+
+
+# The scale suite's warehouse figure eight; its wheel clock is put 15 ms late (the stamps of odometry.csv alone).
+CASE = "warehouse_fig8_yaw10mrad_+1pct"
+LATE_S = 0.015
+
+
+def _shift_odometry(seq, out, offset_s: float) -> None:
+    shutil.copytree(seq, out)
     rows = []
     for line in (seq / "odometry.csv").read_text().splitlines():
         if line[:1].isdigit():
             f = line.split(",")
-            f[0] = f"{float(f[0]) + 0.030:.6f}"
+            f[0] = f"{float(f[0]) + offset_s:.6f}"
             line = ",".join(f)
         rows.append(line)
-    (late / "odometry.csv").write_text("\n".join(rows) + "\n")
-    return seq, late
+    (out / "odometry.csv").write_text("\n".join(rows) + "\n")
 
 
-@pytest.mark.slow
-def test_a_run_reports_its_wheel_clock_offset(figure_eight, tmp_path):
-    """End to end: the offset is reported in summary.json; 30 ms added to the wheels' stamps shows as 30 ms more
-    (within 3 ms); the trajectories are not changed by the estimate (it is reported, not applied)."""
+@pytest.fixture(scope="module")
+def late_wheels(tmp_path_factory):
+    """One render of the suite's case, and the same sequence with the wheels' clock LATE_S ahead."""
+    from windowvo.tools.scale_suite import ensure_rendered, rendered_cases
+
+    root = tmp_path_factory.mktemp("clock")
+    seq = ensure_rendered(next(c for c in rendered_cases() if c.name == CASE), root)
+    _shift_odometry(seq, root / "late", LATE_S)
+    return seq, root / "late"
+
+
+def _run(seq, out, mode: str) -> tuple[dict, float]:
     import json
 
     from conftest import make_config
 
     from windowvo.runtime.job import run_and_report
 
-    out = {}
-    for name, seq in zip(("plain", "late"), figure_eight):
-        run_and_report(make_config(seq, tmp_path / name, run_mode="sequential"))
-        out[name] = json.loads((tmp_path / name / "summary.json").read_text())["wheel_time_offset"]
-    assert out["plain"]["observable"] and out["late"]["observable"]
-    assert abs(out["late"]["offset_ms"] - out["plain"]["offset_ms"] - 30.0) < 3.0, out
-    assert abs(out["plain"]["offset_ms"]) < 10.0, out  # measured +7.0 ms on this sequence (wheel noise, vision)
-    assert out["plain"]["applied"] is False
+    run_and_report(make_config(seq, out, run_mode="sequential", backend={"odometry": {"time_offset": mode}}))
+    summary = json.loads((out / "summary.json").read_text())
+    return summary["wheel_time_offset"], summary["accuracy"]["ate_se3_rmse_m"]
+
+
+@pytest.mark.slow
+def test_a_late_wheel_clock_is_estimated_and_applied(late_wheels, tmp_path):
+    """End to end: 15 ms added to the wheels' stamps is estimated within 3 ms, applied (summary says so), and the
+    run's ATE stays within 1.05x of the plain run's (read at the camera's times, time_offset off, it is 1.13x:
+    measured). One case the suite's sweep passes, not a proof for every sequence (docs/scale_suite.md)."""
+    plain, late = late_wheels
+    _, ate_plain = _run(plain, tmp_path / "plain", "off")
+    clock, ate_late = _run(late, tmp_path / "late", "estimate")
+    assert clock["observable"] and abs(clock["offset_ms"] - 1000.0 * LATE_S) < 3.0, clock
+    assert clock["applied"] and abs(clock["applied_ms"] - 1000.0 * LATE_S) < 3.0, clock
+    assert ate_late <= 1.05 * ate_plain, (ate_late, ate_plain)

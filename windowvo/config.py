@@ -55,6 +55,12 @@ class RobustKind(str, enum.Enum):
     NONE = "none"
 
 
+class WheelClockMode(str, enum.Enum):
+    ESTIMATE = "estimate"  # estimate the wheels' time offset online from the turns and apply it once observable
+    OFF = "off"  # estimate and report it, read the wheels at the camera's times
+    FIXED = "fixed"  # apply backend.odometry.time_offset_ms (still estimated and reported)
+
+
 class MountCalibration(str, enum.Enum):
     """Whether the ground cue measures floor heights along the floor normal learnt in the base frame."""
     OFF = "off"  # never: the base z axis (T_base_cam as given)
@@ -161,6 +167,28 @@ class OdometryNoiseConfig(_Section):
                                                     "vision only")
     max_speed_m_s: float = Field(60.0, gt=0, description="a wheel sample implying a faster motion since the previous "
                                  "one (plus 0.5 m) is a teleport: rejected with a warning, that step vision only")
+    time_offset: WheelClockMode = Field(WheelClockMode.ESTIMATE, description="the wheels' clock against the camera's "
+                                        "(t_wheels = t_camera + offset): estimate (from the turns, applied to the "
+                                        "wheel readings of the factors and the standstill check once observable, "
+                                        "as known at each keyframe), off (only reported) or fixed (time_offset_ms). "
+                                        "A positive offset reads samples not yet arrived at a keyframe: up to "
+                                        "max_gap_s past the newest one they are extrapolated at its velocity")
+    time_offset_ms: float = Field(0.0, ge=-1000.0, le=1000.0, description="the wheels' known time offset to the "
+                                  "camera in ms (positive: the wheels stamp an instant later than the camera); only "
+                                  "with time_offset: fixed")
+
+    @field_validator("time_offset", mode="before")
+    @classmethod
+    def _yaml_off(cls, v):
+        # YAML 1.1 reads a bare `off` as false.
+        return "off" if v is False else v
+
+    @model_validator(mode="after")
+    def _offset_needs_fixed(self) -> OdometryNoiseConfig:
+        if self.time_offset_ms != 0.0 and self.time_offset is not WheelClockMode.FIXED:
+            raise ValueError(f"backend.odometry.time_offset_ms is set but time_offset is '{self.time_offset.value}' "
+                             "(set time_offset: fixed)")
+        return self
 
 
 class PlanarPriorConfig(_Section):

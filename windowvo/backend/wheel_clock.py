@@ -6,7 +6,13 @@ the wheels report between two keyframes, read at the keyframe times shifted by `
 vision measured (the front end's two-view rotation, no wheels in it), up to the wheels' yaw scale (track
 width) and yaw bias per metre. So for each candidate ``dt`` on a grid the wheel heading changes are fitted
 linearly to vision's (``a * vision + b * distance``), and the offset is the ``dt`` of the smallest residual,
-refined by a parabola through its neighbours. Its standard error comes from the residual's curvature.
+refined by a parabola through its neighbours. Its standard error comes from the residual's curvature, widened
+by how much the intervals overlap (overlapping intervals share the wheels' heading noise: they are not independent).
+
+What limits it: the wheels' heading random walk (``sigma_w`` rad/sqrt(m) at speed ``v``) allows no estimator a
+standard error below ``sqrt(sigma_w**2 * v / integral(yaw''(t)**2 dt))``: the offset only shows where the turn
+rate changes. On a rendered 15-20 s figure eight (0.002 rad/sqrt(m), 0.8 m/s) that is 2-3 ms; a constant-rate
+circle does not show it at all.
 
 A path without turns (a straight road) does not show the offset: the estimate then says so
 (``observable`` False) and the offset stays at its last observable value (zero at the start).
@@ -43,6 +49,10 @@ class ClockEstimate:
     sigma_s: float = float("nan")
     observable: bool = False  # enough turning to tell the offset
     n_intervals: int = 0
+    # The offset applied to the wheel readings when the run ended (None: none was) and the camera time from which
+    # one was (``Odometry``; the estimate alone leaves both None).
+    applied_s: float | None = None
+    applied_since_t: float | None = None
 
 
 @dataclass(frozen=True)
@@ -59,11 +69,13 @@ class WheelClock:
         self.max_offset_s = max_offset_s
         self.intervals: deque[_Interval] = deque(maxlen=window)
         self.estimate = ClockEstimate()
+        self.n_added = 0  # intervals added so far (the window may have dropped the oldest)
 
     def add(self, t0: float, t1: float, vision_yaw_rad: float) -> None:
         """One keyframe interval and the base's heading change over it as vision measured it."""
         if t1 > t0 and np.isfinite(vision_yaw_rad):
             self.intervals.append(_Interval(float(t0), float(t1), float(vision_yaw_rad)))
+            self.n_added += 1
 
     def update(self, wheels: WheelOdometry) -> ClockEstimate:
         """Re-estimate from the intervals so far; keeps the last observable estimate when this one is not."""
@@ -89,6 +101,17 @@ def _residuals(t0: np.ndarray, t1: np.ndarray, vis: np.ndarray, wheels: WheelOdo
         coef, *_ = np.linalg.lstsq(A, dyaw, rcond=None)
         rss[i] = float(np.sum((dyaw - A @ coef) ** 2))
     return rss
+
+
+def _overlap(t0: np.ndarray, t1: np.ndarray) -> float:
+    """How many intervals cover an instant of their union, on average (1 for intervals that do not overlap)."""
+    order = np.argsort(t0)
+    a, b = t0[order], t1[order]
+    union, end = 0.0, -np.inf
+    for lo, hi in zip(a, b):
+        union += max(hi - max(lo, end), 0.0)
+        end = max(end, hi)
+    return max(float(np.sum(t1 - t0)) / union, 1.0) if union > 0 else 1.0
 
 
 def estimate_offset(intervals: list[_Interval], wheels: WheelOdometry,
@@ -117,7 +140,8 @@ def estimate_offset(intervals: list[_Interval], wheels: WheelOdometry,
         return ClockEstimate(n_intervals=len(vis))
     shift = 0.5 * (r_m - r_p) / (r_p - 2.0 * r_0 + r_m) * GRID_STEP_S
     offset = float(offsets[i] + np.clip(shift, -GRID_STEP_S, GRID_STEP_S))
-    # Gauss-Newton: var(dt) = 2 sigma^2 / RSS''(dt), with sigma^2 the residual variance of the fit.
+    # Gauss-Newton: var(dt) = 2 sigma^2 / RSS''(dt), with sigma^2 the residual variance of the fit; times the
+    # intervals' overlap (each instant covered by that many of them on average), as they are not independent.
     sigma2 = r_0 / max(len(vis) - 3, 1)
-    sigma_s = float(np.sqrt(2.0 * sigma2 / curvature))
+    sigma_s = float(np.sqrt(2.0 * sigma2 / curvature * _overlap(t0, t1)))
     return ClockEstimate(offset, sigma_s, sigma_s <= MAX_SIGMA_S, len(vis))

@@ -41,6 +41,14 @@ class WheelOdometry:
     def synthetic(self) -> bool:
         return "synthetic" in self.comment.lower()
 
+    def on_camera_clock(self, offset_s: float) -> WheelOdometry:
+        """The same samples stamped on the camera's clock, for wheels whose clock is ``offset_s`` ahead of it
+        (``t_wheels = t_camera + offset_s``): a reading at camera time t is the wheels' pose at t + offset_s."""
+        if offset_s == 0.0:
+            return self
+        return WheelOdometry(self.timestamps - offset_s, self.x, self.y, self.yaw, self.comment, self.extrapolate_s,
+                             self.rejected_times - offset_s)
+
     def covers(self, t: float, tol: float = 1e-6) -> bool:
         return self.timestamps[0] - tol <= t <= self.timestamps[-1] + tol + self.extrapolate_s
 

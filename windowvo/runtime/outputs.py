@@ -113,20 +113,29 @@ def _cue_line(summary: dict) -> str | None:
 def _clock_dict(c) -> dict | None:
     if c is None:
         return None
+    applied = c.applied_s is not None
     return {"offset_ms": round(1000.0 * c.offset_s, 2) if c.observable else None,
             "sigma_ms": round(1000.0 * c.sigma_s, 2) if c.observable else None,
-            "observable": c.observable, "intervals": c.n_intervals, "applied": False}
+            "observable": c.observable, "intervals": c.n_intervals, "applied": applied,
+            "applied_ms": round(1000.0 * c.applied_s, 2) if applied else None,
+            "applied_since_s": round(c.applied_since_t, 3) if applied and c.applied_since_t is not None else None}
 
 
 def _clock_line(r: RunResult) -> str | None:
     c = r.wheel_time_offset
     if c is None:
         return None
+    if c.applied_s is None:
+        use = "not applied"
+    else:
+        use = f"applied: wheels read at the camera's t {1000.0 * c.applied_s:+.1f} ms"
+        if c.applied_since_t is not None:
+            use += f" from t={c.applied_since_t:.2f} s"
     if not c.observable:
         return (f"wheel clock: offset to the camera not observable ({c.n_intervals} keyframe intervals; it shows in "
-                "turns)")
+                f"turns); {use}")
     return (f"wheel clock: {1000.0 * c.offset_s:+.1f} ± {1000.0 * c.sigma_s:.1f} ms against the camera's "
-            "(estimated from the turns; reported, not applied)")
+            f"(estimated from the turns); {use}")
 
 
 def summary_dict(report: JobReport, cfg: Config) -> dict:

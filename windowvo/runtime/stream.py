@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -31,7 +31,7 @@ import numpy as np
 from ..backend.report import ScaleReport, plan_scale
 from ..backend.wheel_clock import ClockEstimate, WheelClock
 from ..camera import CameraModel
-from ..config import Config, load_robot_config, robot_config_from_dict
+from ..config import Config, WheelClockMode, load_robot_config, robot_config_from_dict
 from ..errors import WindowVOError
 from ..frontend.frontend import Frontend
 from ..frontend.tracker import resolve_detection_order
@@ -50,6 +50,8 @@ log = logging.getLogger(__name__)
 CLOCK_SPAN_S = 1.0
 CLOCK_CHAIN = 200
 CLOCK_INTERVALS = 100_000
+# The offset is re-estimated (and the one applied to the wheel readings updated) every this many new intervals.
+CLOCK_UPDATE_EVERY = 10
 
 
 @dataclass
@@ -104,8 +106,16 @@ class Odometry:
                                  cfg.gates, static_mask)
         self.wheels = WheelBuffer(extrapolate_s=cfg.backend.odometry.max_gap_s, comment=wheel_comment)
         self.wheels.max_speed_m_s = cfg.backend.odometry.max_speed_m_s
-        # The wheels' clock against the camera's, from vision's heading changes over CLOCK_SPAN_S (reported).
+        # The wheels' clock against the camera's, from vision's heading changes over CLOCK_SPAN_S; the wheels are read
+        # at camera time t + wheel_offset_s (backend.odometry.time_offset), from the time offset_applied_since.
         self.clock = WheelClock(window=CLOCK_INTERVALS) if self.use_odometry else None
+        odo_cfg = cfg.backend.odometry
+        self.clock_mode = odo_cfg.time_offset
+        fixed = self.clock_mode is WheelClockMode.FIXED
+        self.wheel_offset_s = odo_cfg.time_offset_ms / 1000.0 if fixed else 0.0
+        self.offset_applied_since: float | None = None
+        self._clock_updated_at = 0  # the clock's interval count at the last re-estimate
+        self._shifted: tuple[WheelOdometry, float, WheelOdometry] | None = None  # (raw view, offset, shifted view)
         self._vision_yaw: list[tuple[float, float]] = []  # (keyframe time, heading chained from two-view rotations)
         self.frames: list[tuple[int, float]] = []  # (frame index, timestamp) of every frame, skipped ones too
         self.online: list[np.ndarray] = []  # causal T_world_base per frame
@@ -132,7 +142,16 @@ class Odometry:
         self.wheels.append(t, x, y, yaw)
 
     def _wheels(self) -> WheelOdometry | None:
-        return self.wheels.view() if self.use_odometry else None
+        """The wheel samples on the camera's clock (shifted by the applied offset); None without wheel factors."""
+        return self._camera_clock_wheels() if self.use_odometry else None
+
+    def _camera_clock_wheels(self) -> WheelOdometry | None:
+        raw = self.wheels.view()
+        if raw is None or self.wheel_offset_s == 0.0:
+            return raw
+        if self._shifted is None or self._shifted[0] is not raw or self._shifted[1] != self.wheel_offset_s:
+            self._shifted = (raw, self.wheel_offset_s, raw.on_camera_clock(self.wheel_offset_s))
+        return self._shifted[2]
 
     def process(self, t: float, image: np.ndarray, index: int | None = None, mask: np.ndarray | None = None,
                 is_last: bool = False) -> FrameEstimate:
@@ -168,10 +187,13 @@ class Odometry:
         if self._last_t is not None and t <= self._last_t:
             raise WindowVOError(f"frame times must increase: {t} after {self._last_t}")
         idx = self._n_tracked if index is None else index
+        if self.offset_applied_since is None and self.clock_mode is WheelClockMode.FIXED:
+            self.offset_applied_since = float(t)
         fo = self.frontend.process(Frame(idx, float(t), image, mask), self._odom_since_kf(t), force_keyframe=is_last)
         odom, note = None, ""
         if fo.is_keyframe:
             self._observe_clock(fo, float(t))
+            self._update_offset(float(t))
             odom = self._odom_step(self.last_kf_time, t) if self.last_kf_time is not None else None
             if odom is not None and not odom.ok:
                 note = "odometry gap: vision only"
@@ -197,13 +219,28 @@ class Odometry:
                 break
         del self._vision_yaw[:-CLOCK_CHAIN]
 
+    def _update_offset(self, t: float) -> None:
+        """Re-estimate the offset every CLOCK_UPDATE_EVERY new intervals (from the wheel samples so far: causal) and,
+        with ``time_offset: estimate``, read the wheels at the new estimate from now on once it is observable."""
+        raw = self.wheels.view()
+        if self.clock is None or raw is None or self.clock.n_added - self._clock_updated_at < CLOCK_UPDATE_EVERY:
+            return
+        self._clock_updated_at = self.clock.n_added
+        est = self.clock.update(raw)
+        if est.observable and self.clock_mode is WheelClockMode.ESTIMATE:
+            self.wheel_offset_s = est.offset_s
+            if self.offset_applied_since is None:
+                self.offset_applied_since = t
+
     def wheel_time_offset(self) -> ClockEstimate | None:
-        """The wheels' time offset to the camera (``t_wheels = t_camera + offset_s``) from the keyframes so far;
-        None without wheels. Reported, not applied to the wheel readings."""
-        odo = self._wheels()
-        if self.clock is None or odo is None:
+        """The wheels' time offset to the camera (``t_wheels = t_camera + offset_s``) from the keyframes so far, with
+        the offset applied to the wheel readings (``applied_s``, None when none was); None without wheels."""
+        raw = self.wheels.view() if self.use_odometry else None
+        if self.clock is None or raw is None:
             return None
-        return self.clock.update(odo)
+        applied = self.offset_applied_since is not None
+        return replace(self.clock.update(raw), applied_s=self.wheel_offset_s if applied else None,
+                       applied_since_t=self.offset_applied_since)
 
     def track_skipped(self, index: int, t: float, reason: str) -> TrackedFrame:
         return self._tracked(TrackedFrame(index, float(t), time.perf_counter(), None, None, f"skipped: {reason}"))
@@ -240,7 +277,7 @@ class Odometry:
     # ------------------------------------------------------------------ wheel helpers
     def _odom_since_kf(self, t: float) -> tuple[float, float] | None:
         """Distance and absolute turn since the last keyframe (the front end's standstill check)."""
-        odo = self.wheels.view()
+        odo = self._camera_clock_wheels()
         if odo is None or self.last_kf_time is None:
             return None
         d = odo.delta(self.last_kf_time, t)
