@@ -120,6 +120,25 @@ def test_the_estimated_offset_is_applied_to_the_wheel_factors():
     assert rep is not None and rep.applied_s == vo.wheel_offset_s and rep.applied_since_t == 20.0
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_a_zero_offset_is_told_from_a_real_one(seed):
+    """The likelihood-ratio test against a zero offset: a 30 ms offset rejects zero, a true zero does not (at 99%,
+    on these seeds), so a drive whose clocks agree is left as it is."""
+    clock, wheels = _drive(0.03, seed=seed)
+    assert estimate_offset(list(clock.intervals), wheels).zero_rejected
+    clock, wheels = _drive(0.0, seed=seed)
+    est = estimate_offset(list(clock.intervals), wheels)
+    assert est.observable and not est.zero_rejected, est
+
+
+def test_an_estimate_not_told_from_zero_is_not_applied():
+    vo, _ = _stream("estimate", 0.0)
+    vo._update_offset(20.0)
+    assert vo.wheel_offset_s == 0.0 and vo.offset_applied_since is None
+    rep = vo.wheel_time_offset()
+    assert rep is not None and rep.observable and not rep.zero_rejected and rep.applied_s is None
+
+
 def test_the_offset_is_re_estimated_only_every_few_new_intervals():
     vo, _ = _stream("estimate", 0.03)
     vo._update_offset(20.0)

@@ -39,6 +39,10 @@ MIN_INTERVALS = 15
 MIN_TURN_VARIATION_RAD = 0.05
 # An estimate is used only when its standard error is below this (s).
 MAX_SIGMA_S = 0.004
+# ... and when the fit at the estimate beats the fit at a zero offset by a likelihood-ratio test: the drop of the
+# residual sum of squares, in residual variances (counted by the intervals' overlap), above the chi-square quantile
+# of 1 degree of freedom at 99%. The curvature's sigma is local: it cannot see a second minimum near zero.
+CHI2_1DOF_99 = 6.635
 
 
 @dataclass(frozen=True)
@@ -49,6 +53,7 @@ class ClockEstimate:
     sigma_s: float = float("nan")
     observable: bool = False  # enough turning to tell the offset
     n_intervals: int = 0
+    zero_rejected: bool = False  # the data tell this offset from none (likelihood-ratio test at 99%)
     # The offset applied to the wheel readings when the run ended (None: none was) and the camera time from which
     # one was (``Odometry``; the estimate alone leaves both None).
     applied_s: float | None = None
@@ -84,7 +89,7 @@ class WheelClock:
             self.estimate = est
         else:
             self.estimate = ClockEstimate(self.estimate.offset_s, self.estimate.sigma_s, self.estimate.observable,
-                                          est.n_intervals)
+                                          est.n_intervals, self.estimate.zero_rejected)
         return self.estimate
 
 
@@ -143,5 +148,8 @@ def estimate_offset(intervals: list[_Interval], wheels: WheelOdometry,
     # Gauss-Newton: var(dt) = 2 sigma^2 / RSS''(dt), with sigma^2 the residual variance of the fit; times the
     # intervals' overlap (each instant covered by that many of them on average), as they are not independent.
     sigma2 = r_0 / max(len(vis) - 3, 1)
-    sigma_s = float(np.sqrt(2.0 * sigma2 / curvature * _overlap(t0, t1)))
-    return ClockEstimate(offset, sigma_s, sigma_s <= MAX_SIGMA_S, len(vis))
+    overlap = _overlap(t0, t1)
+    sigma_s = float(np.sqrt(2.0 * sigma2 / curvature * overlap))
+    rss_zero = float(rss[int(np.argmin(np.abs(offsets)))])
+    zero_rejected = (rss_zero - r_0) / max(sigma2 * overlap, 1e-300) > CHI2_1DOF_99
+    return ClockEstimate(offset, sigma_s, sigma_s <= MAX_SIGMA_S, len(vis), zero_rejected)

@@ -116,7 +116,8 @@ def _clock_dict(c) -> dict | None:
     applied = c.applied_s is not None
     return {"offset_ms": round(1000.0 * c.offset_s, 2) if c.observable else None,
             "sigma_ms": round(1000.0 * c.sigma_s, 2) if c.observable else None,
-            "observable": c.observable, "intervals": c.n_intervals, "applied": applied,
+            "observable": c.observable, "told_from_zero": c.zero_rejected, "intervals": c.n_intervals,
+            "applied": applied,
             "applied_ms": round(1000.0 * c.applied_s, 2) if applied else None,
             "applied_since_s": round(c.applied_since_t, 3) if applied and c.applied_since_t is not None else None}
 
@@ -126,7 +127,7 @@ def _clock_line(r: RunResult) -> str | None:
     if c is None:
         return None
     if c.applied_s is None:
-        use = "not applied"
+        use = "not applied" if c.zero_rejected or not c.observable else "not applied (not told from a zero offset)"
     else:
         use = f"applied: wheels read at the camera's t {1000.0 * c.applied_s:+.1f} ms"
         if c.applied_since_t is not None:

@@ -221,13 +221,13 @@ class Odometry:
 
     def _update_offset(self, t: float) -> None:
         """Re-estimate the offset every CLOCK_UPDATE_EVERY new intervals (from the wheel samples so far: causal) and,
-        with ``time_offset: estimate``, read the wheels at the new estimate from now on once it is observable."""
+        with ``time_offset: estimate``, read the wheels at the new estimate from now on once it is observable and told from a zero offset."""
         raw = self.wheels.view()
         if self.clock is None or raw is None or self.clock.n_added - self._clock_updated_at < CLOCK_UPDATE_EVERY:
             return
         self._clock_updated_at = self.clock.n_added
         est = self.clock.update(raw)
-        if est.observable and self.clock_mode is WheelClockMode.ESTIMATE:
+        if est.observable and est.zero_rejected and self.clock_mode is WheelClockMode.ESTIMATE:
             self.wheel_offset_s = est.offset_s
             if self.offset_applied_since is None:
                 self.offset_applied_since = t
