@@ -63,7 +63,7 @@ class RunResult:
     notes: list[str] = field(default_factory=list)
     last_frame_index: int = -1
     trajectory_online: Trajectory | None = None  # causal pose per frame, as a robot had it at that time
-    wheel_time_offset: ClockEstimate | None = None  # the wheels' clock against the camera's (reported, not applied)
+    wheel_time_offset: ClockEstimate | None = None  # the wheels' clock against the camera's, and what was applied
 
     @property
     def fps(self) -> float:
