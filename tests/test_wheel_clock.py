@@ -125,7 +125,7 @@ def test_a_zero_offset_is_told_from_a_real_one(seed):
     """The likelihood-ratio test against a zero offset: a 30 ms offset rejects zero, a true zero does not (at 99%,
     on these seeds), so a drive whose clocks agree is left as it is."""
     clock, wheels = _drive(0.03, seed=seed)
-    assert estimate_offset(list(clock.intervals), wheels).zero_rejected
+    assert estimate_offset(list(clock.intervals), wheels).zero_rejected is True  # a bool: it goes to summary.json
     clock, wheels = _drive(0.0, seed=seed)
     est = estimate_offset(list(clock.intervals), wheels)
     assert est.observable and not est.zero_rejected, est
@@ -225,3 +225,14 @@ def test_a_late_wheel_clock_is_estimated_and_applied(late_wheels, tmp_path):
     assert clock["observable"] and abs(clock["offset_ms"] - 1000.0 * LATE_S) < 3.0, clock
     assert clock["applied"] and abs(clock["applied_ms"] - 1000.0 * LATE_S) < 3.0, clock
     assert ate_late <= 1.05 * ate_plain, (ate_late, ate_plain)
+
+
+def test_the_summary_takes_numpy_values(tmp_path):
+    """A value computed with NumPy (a numpy bool from a comparison, a float64, an array) must never cost a run its
+    summary.json (the clock's test once gave a numpy bool: the run ended in a TypeError)."""
+    import json
+
+    from windowvo.runtime.outputs import write_summary
+
+    write_summary({"flag": np.bool_(True), "x": np.float64(1.5), "v": np.arange(3)}, tmp_path)
+    assert json.loads((tmp_path / "summary.json").read_text()) == {"flag": True, "x": 1.5, "v": [0, 1, 2]}

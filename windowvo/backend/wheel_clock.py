@@ -151,5 +151,5 @@ def estimate_offset(intervals: list[_Interval], wheels: WheelOdometry,
     overlap = _overlap(t0, t1)
     sigma_s = float(np.sqrt(2.0 * sigma2 / curvature * overlap))
     rss_zero = float(rss[int(np.argmin(np.abs(offsets)))])
-    zero_rejected = (rss_zero - r_0) / max(sigma2 * overlap, 1e-300) > CHI2_1DOF_99
+    zero_rejected = bool((rss_zero - r_0) / max(sigma2 * overlap, 1e-300) > CHI2_1DOF_99)
     return ClockEstimate(offset, sigma_s, sigma_s <= MAX_SIGMA_S, len(vis), zero_rejected)

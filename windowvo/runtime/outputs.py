@@ -177,8 +177,15 @@ def write_summary(summary: dict, out: Path) -> None:
     """``summary.json``, atomically (temporary file, then rename): a stop while writing never leaves half of it."""
     with section(Stage.OUTPUTS):
         tmp = out / "summary.json.tmp"
-        tmp.write_text(json.dumps(summary, indent=2))
+        tmp.write_text(json.dumps(summary, indent=2, default=_plain))
         os.replace(tmp, out / "summary.json")
+
+
+def _plain(value):
+    """NumPy scalars and arrays as JSON's own types: a value computed with NumPy never costs a run its summary."""
+    if isinstance(value, np.generic | np.ndarray):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} in summary.json")
 
 
 def _scale_line(r: RunResult, summary: dict) -> str:
