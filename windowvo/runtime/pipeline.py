@@ -314,7 +314,7 @@ class Pipeline:
         if self._journal is not None:
             self._journal.add(est.timestamp, est.T_world_base)
         if self._run_journal is not None:
-            odo = self.vo.wheels.view() if self.use_odometry else None
+            odo = self.vo.wheels_on_camera_clock()  # as the finished run's interpolation reads them
             wheel_m = None
             if odo is not None and self._last_kf_t is not None and est.timestamp > self._last_kf_t:
                 wheel_m = odo.distance(self._last_kf_t, est.timestamp)

@@ -145,6 +145,11 @@ class Odometry:
         """The wheel samples on the camera's clock (shifted by the applied offset); None without wheel factors."""
         return self._camera_clock_wheels() if self.use_odometry else None
 
+    def wheels_on_camera_clock(self) -> WheelOdometry | None:
+        """The wheel samples so far as this odometry reads them: on the camera's clock, shifted by the offset
+        applied (``backend.odometry.time_offset``); None without wheels in use."""
+        return self._wheels()
+
     def _camera_clock_wheels(self) -> WheelOdometry | None:
         raw = self.wheels.view()
         if raw is None or self.wheel_offset_s == 0.0:
