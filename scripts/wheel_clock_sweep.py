@@ -1,0 +1,107 @@
+"""The wheel clock offset, estimated and applied, measured: each sequence run with its wheel stamps shifted.
+
+For each sequence and offset, ``odometry.csv``'s stamps alone are shifted by the offset (the wheels' clock ahead of
+the camera's by that much; the images are linked, not copied) and the sequence is run the fused way in the
+sequential run mode twice: with ``backend.odometry.time_offset: estimate`` (the default: estimated and applied) and
+``off`` (estimated, reported, the wheels read at the camera's times). It prints, per run, the estimate's error
+against the true offset, its sigma, whether it was applied and from when, and the ATE SE(3) over the unshifted
+sequence's run with the default config; then the geometric mean and the worst of those ratios for the offsets that are not zero.
+
+    python scripts/wheel_clock_sweep.py SEQ [SEQ ...] --work DIR [--offsets-ms 0,15,30,50,-20]
+
+Results in DIR/wheel_clock_sweep.json (runs already there are not repeated).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import shutil
+import sys
+from pathlib import Path
+
+from windowvo.config import apply_overrides, config_from_dict
+from windowvo.runtime.job import run_job
+
+MODES = ("estimate", "off")
+
+
+def shifted(seq: Path, offset_ms: float, work: Path) -> Path:
+    """``seq`` with its wheel stamps shifted by ``offset_ms`` (a new folder in ``work``; images linked)."""
+    if offset_ms == 0:
+        return seq
+    out = work / "sequences" / f"{seq.name}_{offset_ms:+.0f}ms"
+    if out.exists():
+        return out
+    out.mkdir(parents=True)
+    for f in seq.iterdir():
+        if f.name == "images":
+            (out / "images").symlink_to(f.resolve())
+        elif f.name != "odometry.csv" and f.is_file():
+            shutil.copy(f, out / f.name)
+    rows = []
+    for line in (seq / "odometry.csv").read_text().splitlines():
+        if line[:1].isdigit():
+            cells = line.split(",")
+            cells[0] = f"{float(cells[0]) + offset_ms / 1000.0:.6f}"
+            line = ",".join(cells)
+        rows.append(line)
+    (out / "odometry.csv").write_text("\n".join(rows) + "\n")
+    return out
+
+
+def run_once(seq: Path, mode: str, out: Path) -> dict:
+    data = apply_overrides({"sequence": str(seq), "output": str(out), "progress": False, "viz": {"rerun": "off"},
+                            "run_mode": "sequential"}, [f"backend.odometry.time_offset={mode}"])
+    report = run_job(config_from_dict(data))
+    c = report.result.wheel_time_offset
+    assert report.accuracy is not None and c is not None, "the sweep needs ground truth and wheels"
+    return {"ate": report.accuracy.ate_se3_rmse_m,
+            "estimate_ms": 1000.0 * c.offset_s if c.observable else None, "sigma_ms": 1000.0 * c.sigma_s,
+            "applied_ms": None if c.applied_s is None else 1000.0 * c.applied_s, "since_s": c.applied_since_t}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("sequences", nargs="+", type=Path)
+    p.add_argument("--work", type=Path, required=True, help="folder for the shifted sequences, runs and results")
+    p.add_argument("--offsets-ms", default="0,15,30,50,-20", help="comma-separated offsets (ms); 0 is always run")
+    a = p.parse_args()
+    logging.basicConfig(level=logging.ERROR)
+    offsets = sorted({0.0, *(float(x) for x in a.offsets_ms.split(","))}, key=lambda x: (x != 0, x))
+    a.work.mkdir(parents=True, exist_ok=True)
+    store = a.work / "wheel_clock_sweep.json"
+    res = json.loads(store.read_text()) if store.exists() else {}
+    ratios: dict[str, list[float]] = {m: [] for m in MODES}
+    print("| sequence | offset ms | estimate error ms (sigma) | applied from s | ATE m estimate / off | "
+          "over plain: estimate / off |\n|---|---|---|---|---|---|")
+    for seq in a.sequences:
+        for off in offsets:
+            for mode in MODES:
+                key = f"{seq.name}|{off:+.0f}|{mode}"
+                if key not in res:
+                    res[key] = run_once(shifted(seq, off, a.work), mode, a.work / "runs" / key.replace("|", "_"))
+                    store.write_text(json.dumps(res, indent=1))
+            plain = res[f"{seq.name}|+0|estimate"]["ate"]  # the same run (default config) without the offset
+            est, off_run = res[f"{seq.name}|{off:+.0f}|estimate"], res[f"{seq.name}|{off:+.0f}|off"]
+            err = "not observable" if est["estimate_ms"] is None else \
+                f"{est['estimate_ms'] - off:+.1f} ({est['sigma_ms']:.1f})"
+            since = "-" if est["since_s"] is None else f"{est['since_s']:.1f}"
+            if off != 0:
+                ratios["estimate"].append(est["ate"] / plain)
+                ratios["off"].append(off_run["ate"] / plain)
+            print(f"| {seq.name} | {off:+.0f} | {err} | {since} | {est['ate']:.4f} / {off_run['ate']:.4f} | "
+                  f"{est['ate'] / plain:.2f}x / {off_run['ate'] / plain:.2f}x |")
+    for mode, r in ratios.items():
+        if r:
+            g = math.exp(sum(math.log(x) for x in r) / len(r))
+            within = sum(x <= 1.05 for x in r)
+            print(f"{mode}: over the plain run, offsets not 0: gmean {g:.2f}x, worst {max(r):.2f}x, "
+                  f"{within} of {len(r)} within 1.05x")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
