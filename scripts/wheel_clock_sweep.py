@@ -18,38 +18,22 @@ import argparse
 import json
 import logging
 import math
-import shutil
 import sys
 from pathlib import Path
 
 from windowvo.config import apply_overrides, config_from_dict
 from windowvo.runtime.job import run_job
+from windowvo.synth.generate import shift_wheel_clock
 
 MODES = ("estimate", "off")
 
 
 def shifted(seq: Path, offset_ms: float, work: Path) -> Path:
-    """``seq`` with its wheel stamps shifted by ``offset_ms`` (a new folder in ``work``; images linked)."""
+    """``seq`` with its wheel stamps shifted by ``offset_ms`` (a folder in ``work``, made once; images linked)."""
     if offset_ms == 0:
         return seq
     out = work / "sequences" / f"{seq.name}_{offset_ms:+.0f}ms"
-    if out.exists():
-        return out
-    out.mkdir(parents=True)
-    for f in seq.iterdir():
-        if f.name == "images":
-            (out / "images").symlink_to(f.resolve())
-        elif f.name != "odometry.csv" and f.is_file():
-            shutil.copy(f, out / f.name)
-    rows = []
-    for line in (seq / "odometry.csv").read_text().splitlines():
-        if line[:1].isdigit():
-            cells = line.split(",")
-            cells[0] = f"{float(cells[0]) + offset_ms / 1000.0:.6f}"
-            line = ",".join(cells)
-        rows.append(line)
-    (out / "odometry.csv").write_text("\n".join(rows) + "\n")
-    return out
+    return out if out.exists() else shift_wheel_clock(seq, out, offset_ms / 1000.0)
 
 
 def run_once(seq: Path, mode: str, out: Path) -> dict:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import shutil
 
 import numpy as np
 import pytest
@@ -179,27 +178,15 @@ CASE = "warehouse_fig8_yaw10mrad_+1pct"
 LATE_S = 0.015
 
 
-def _shift_odometry(seq, out, offset_s: float) -> None:
-    shutil.copytree(seq, out)
-    rows = []
-    for line in (seq / "odometry.csv").read_text().splitlines():
-        if line[:1].isdigit():
-            f = line.split(",")
-            f[0] = f"{float(f[0]) + offset_s:.6f}"
-            line = ",".join(f)
-        rows.append(line)
-    (out / "odometry.csv").write_text("\n".join(rows) + "\n")
-
-
 @pytest.fixture(scope="module")
 def late_wheels(tmp_path_factory):
     """One render of the suite's case, and the same sequence with the wheels' clock LATE_S ahead."""
+    from windowvo.synth.generate import shift_wheel_clock
     from windowvo.tools.scale_suite import ensure_rendered, rendered_cases
 
     root = tmp_path_factory.mktemp("clock")
     seq = ensure_rendered(next(c for c in rendered_cases() if c.name == CASE), root)
-    _shift_odometry(seq, root / "late", LATE_S)
-    return seq, root / "late"
+    return seq, shift_wheel_clock(seq, root / "late", LATE_S)
 
 
 def _run(seq, out, mode: str) -> tuple[dict, float]:
@@ -236,3 +223,16 @@ def test_the_summary_takes_numpy_values(tmp_path):
 
     write_summary({"flag": np.bool_(True), "x": np.float64(1.5), "v": np.arange(3)}, tmp_path)
     assert json.loads((tmp_path / "summary.json").read_text()) == {"flag": True, "x": 1.5, "v": [0, 1, 2]}
+
+
+def test_a_shifted_wheel_clock_moves_only_the_wheel_stamps(tmp_path):
+    from windowvo.io.odometry import read_odometry_csv
+    from windowvo.synth.generate import SynthSpec, generate_sequence, shift_wheel_clock
+
+    seq = tmp_path / "seq"
+    generate_sequence(seq, SynthSpec(duration_s=0.5, width=64, height=48, fx=40.0, write_images=False))
+    late = shift_wheel_clock(seq, tmp_path / "late", 0.025)
+    a, b = read_odometry_csv(seq / "odometry.csv"), read_odometry_csv(late / "odometry.csv")
+    assert np.allclose(b.timestamps, a.timestamps + 0.025, atol=1e-6)
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.yaw, b.yaw) and a.comment == b.comment
+    assert (late / "times.txt").read_text() == (seq / "times.txt").read_text()

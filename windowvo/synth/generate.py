@@ -428,3 +428,25 @@ def generate_sequence(out: Path, spec: SynthSpec, progress: bool | Callable[[int
         _write_images(out / "images", world, frames, progress)
     _write_tables(out, world, times_all[keep], [T for _, _, T in frames])
     return world
+
+
+def shift_wheel_clock(seq: Path, out: Path, offset_s: float) -> Path:
+    """A copy of the native sequence ``seq`` in ``out`` whose wheels' clock is ``offset_s`` ahead of the camera's
+    (``t_wheels = t_camera + offset_s``): the stamps of odometry.csv alone are shifted, the images are linked (a
+    driver-stamping fault, for measuring the wheel clock's estimate). Returns ``out``."""
+    seq, out = Path(seq), Path(out)
+    out.mkdir(parents=True, exist_ok=False)
+    for f in seq.iterdir():
+        if f.name == "images":
+            (out / "images").symlink_to(f.resolve())
+        elif f.is_file() and f.name != "odometry.csv":
+            (out / f.name).write_bytes(f.read_bytes())
+    rows = []
+    for line in (seq / "odometry.csv").read_text().splitlines():
+        if line[:1].isdigit():
+            cells = line.split(",")
+            cells[0] = f"{float(cells[0]) + offset_s:.6f}"
+            line = ",".join(cells)
+        rows.append(line)
+    (out / "odometry.csv").write_text("\n".join(rows) + "\n")
+    return out
