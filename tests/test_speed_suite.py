@@ -44,3 +44,25 @@ def test_no_repeats_is_one_line(tmp_path, capsys):
     assert main(["--suite", "speed", "--repeats", "0", "--out", str(tmp_path / "o"), "--cache", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("windowvo.bench: error:") and "--repeats" in err[0]
+
+
+def test_a_failing_child_is_one_line_and_exit_2(tmp_path, monkeypatch, capsys):
+    """A child process of the suite that fails is a WindowVOError naming its last stderr line; the bench command
+    prints it as one line and exits 2 (it was a RuntimeError traceback)."""
+    import os
+    import sys
+
+    from windowvo.cli import bench as cli_bench
+    from windowvo.errors import WindowVOError
+    from windowvo.tools import speed
+
+    with pytest.raises(WindowVOError, match=r"failed \(exit 3\): boom"):
+        speed._timed([sys.executable, "-c", "import sys; print('boom', file=sys.stderr); sys.exit(3)"], dict(os.environ))
+
+    def failing(*_a, **_k):
+        raise WindowVOError("speed suite: -m windowvo.run x.yaml failed (exit 1): TypeError: ...")
+
+    monkeypatch.setattr(speed, "bench_speed", failing)
+    assert cli_bench.main(["--suite", "speed", "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("windowvo.bench: error: speed suite:"), err

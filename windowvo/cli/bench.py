@@ -195,7 +195,10 @@ def main(argv=None) -> int:
               "modes": lambda: _modes(cache, out), "memory": lambda: _memory(cache, out), "bag": lambda: _bag(cache, out),
               "scale": lambda: _scale(a, out, cache), "stages": lambda: _stages(cache, out),
               "speed": lambda: _speed(a, cache, out)}
-    results: dict = {name: run() for name, run in suites.items() if name in a.suite}
+    try:
+        results: dict = {name: run() for name, run in suites.items() if name in a.suite}
+    except WindowVOError as err:  # a run of a suite failed (e.g. a child process of the speed suite): one line
+        return cli_error(err, "windowvo.bench")
     (out / "bench.json").write_text(json.dumps(results, indent=2, default=float))
     print(f"results: {out / 'bench.json'}")
     return 0

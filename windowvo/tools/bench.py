@@ -484,10 +484,16 @@ def bench_memory(cache: Path, out_root: Path, long_frames: int = 5000) -> dict:
     return res
 
 
+def children_cpu_s() -> float:
+    """CPU seconds (user + system) of this process's children that have ended (and been waited for)."""
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return kids.ru_utime + kids.ru_stime
+
+
 def cpu_with_children_s() -> float:
     """CPU seconds (user + system) of this process's threads and of its children that have ended."""
-    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    return own.ru_utime + own.ru_stime + children_cpu_s()
 
 
 def _rerun_job(seq_dir: str, out: str, on: bool) -> dict:

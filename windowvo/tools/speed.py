@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import subprocess
 import sys
 import time
@@ -22,7 +21,8 @@ from pathlib import Path
 
 import yaml
 
-from .bench import CaseKind, SeqCase, case_config_data, kitti_cases, synthetic_cases
+from ..errors import WindowVOError
+from .bench import CaseKind, SeqCase, case_config_data, children_cpu_s, kitti_cases, synthetic_cases
 
 CHAINING_FEATURES = 2000  # the issue's baseline: ORB 2000
 SPEED_DURATION_S = 30.0  # the rendered loop of the issue: 600 frames at 20 fps
@@ -59,19 +59,14 @@ def speed_cases() -> list[SeqCase]:
     return rendered + kitti
 
 
-def _children_cpu_s() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
-
-
 def _timed(cmd: list[str], env: dict[str, str]) -> tuple[float, float]:
     """Wall and CPU seconds of one child process (and its own children), which must succeed."""
-    cpu0, t0 = _children_cpu_s(), time.perf_counter()
+    cpu0, t0 = children_cpu_s(), time.perf_counter()
     done = subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, timeout=1800)
-    wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0
+    wall, cpu = time.perf_counter() - t0, children_cpu_s() - cpu0
     if done.returncode != 0:
         tail = done.stderr.strip().splitlines()[-1:] or ["(no output)"]
-        raise RuntimeError(f"{' '.join(cmd[:4])} failed (exit {done.returncode}): {tail[0]}")
+        raise WindowVOError(f"speed suite: {' '.join(cmd[1:4])} failed (exit {done.returncode}): {tail[0]}")
     return wall, cpu
 
 
