@@ -9,12 +9,10 @@ import shutil
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
 
 from windowvo.config import config_from_dict
-from windowvo.synth.generate import SynthSpec, WheelErrorModel, below_horizon, camera_for, generate_sequence
+from windowvo.synth.generate import SynthSpec, generate_sequence, pixels_spec
 from windowvo.synth.paths import PathKind
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -31,47 +29,6 @@ def _shared_root(tmp_path_factory) -> Path:
 
 def _spec_key(spec: SynthSpec) -> str:
     return hashlib.sha1(repr(spec).encode()).hexdigest()[:12]
-
-
-def image_spec(spec: SynthSpec) -> SynthSpec:
-    """The spec whose render ``spec``'s images are made from. What only the estimator is told (the wheels' errors
-    in odometry.csv, the claimed mount in camera.yaml) changes no pixel; without image noise (whose random draws
-    follow the rendered frames), the frame faults (hidden floor, black, duplicate, dropped, corrupt frames) are
-    edits of the rendered frames, made here as generate_sequence makes them (tests/test_shared_renders.py)."""
-    base = replace(spec, wheel=WheelErrorModel(), calib_pitch_error_deg=0.0)
-    if spec.image_noise == 0:
-        base = replace(base, floor_hidden_frames=0, black_frames=[], duplicate_frames=[], dropped_frames=[],
-                       corrupt_frames=[])
-    return base
-
-
-def _faulty_images(folder: Path, spec: SynthSpec, rendered: Path) -> None:
-    """``folder``: the images of ``spec`` from ``rendered``, the images of ``image_spec(spec)`` (links to the
-    frames no fault changes)."""
-    folder.mkdir()
-    n = round(spec.duration_s * spec.fps) + 1
-    keep = [i for i in range(n) if i not in set(spec.dropped_frames)]
-    hidden = below_horizon(camera_for(spec)) if spec.floor_hidden_frames > 0 else None
-    last: Path | None = None
-    for k, i in enumerate(keep):
-        name, src = folder / f"{k:06d}.png", rendered / f"{i:06d}.png"
-        if i in spec.corrupt_frames:
-            name.write_bytes(b"\x89PNG\r\n\x1a\n" + b"corrupt" * 10)
-            continue
-        if i in spec.duplicate_frames and last is not None:
-            name.symlink_to(last)
-            continue
-        if i in spec.black_frames or (hidden is not None and i < spec.floor_hidden_frames):
-            img8 = cv2.imread(str(src), cv2.IMREAD_GRAYSCALE)
-            if hidden is not None and i < spec.floor_hidden_frames:
-                img8[hidden] = int(img8[~hidden].mean())
-            if i in spec.black_frames:
-                img8 = np.zeros_like(img8)
-            cv2.imwrite(str(name), img8, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-            last = Path(name.name)  # (relative: the partial folder is renamed)
-        else:
-            name.symlink_to(src)
-            last = src
 
 
 def _locked_once(root: Path, out: Path, write) -> Path:
@@ -92,18 +49,18 @@ def _render_once(root: Path, spec: SynthSpec) -> Path:
     already did; a spec that differs from a rendered one only in what the estimator is told gets its own
     tables (times, camera.yaml, odometry, ground truth) and a link to that render's images (or to its frames, with
     the spec's frame faults)."""
-    pixels = image_spec(spec)
+    pixels = pixels_spec(spec)
     if pixels == spec:
         return _locked_once(root, root / f"render-{_spec_key(spec)}", lambda part: generate_sequence(part, spec))
     images = _render_once(root, pixels) / "images"
 
     def tables(part: Path) -> None:
-        part.mkdir()
         if replace(pixels, wheel=spec.wheel, calib_pitch_error_deg=spec.calib_pitch_error_deg) == spec:
+            part.mkdir()
             (part / "images").symlink_to(images, target_is_directory=True)
+            generate_sequence(part, replace(spec, write_images=False))
         else:
-            _faulty_images(part / "images", spec, images)
-        generate_sequence(part, replace(spec, write_images=False))
+            generate_sequence(part, spec, images_from=images)
 
     return _locked_once(root, root / f"tables-{_spec_key(spec)}", tables)
 

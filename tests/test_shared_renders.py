@@ -6,9 +6,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from conftest import image_spec
 
-from windowvo.synth.generate import SynthSpec, WheelErrorModel, generate_sequence
+from windowvo.synth.generate import SynthSpec, WheelErrorModel, generate_sequence, pixels_spec
 from windowvo.synth.paths import PathKind
 
 SMALL = dict(path=PathKind.LOOP, duration_s=1.0, seed=3, width=160, height=120, fx=85.0)
@@ -39,7 +38,7 @@ def _same_sequence(a, b) -> None:
 def test_a_sequence_from_a_shared_render_is_its_own_render(seq_factory, tmp_path, case):
     spec = SynthSpec(**SMALL, **CASES[case])
     shared = seq_factory(f"shared_{case}", **SMALL, **CASES[case])
-    assert image_spec(spec) == SynthSpec(**SMALL)  # made from the plain render, not rendered again
+    assert pixels_spec(spec) == SynthSpec(**SMALL)  # made from the plain render, not rendered again
     generate_sequence(tmp_path / "direct", spec)
     _same_sequence(shared, tmp_path / "direct")
 
@@ -47,4 +46,9 @@ def test_a_sequence_from_a_shared_render_is_its_own_render(seq_factory, tmp_path
 def test_image_noise_is_rendered_again(seq_factory):
     """Image noise draws from one random stream frame after frame, so a spec with faults is rendered as is."""
     spec = SynthSpec(**SMALL, image_noise=1.0, dropped_frames=[2])
-    assert image_spec(spec) == spec
+    assert pixels_spec(spec) == spec
+
+
+def test_images_from_refuses_a_noisy_spec(tmp_path):
+    with pytest.raises(ValueError, match="image noise"):
+        generate_sequence(tmp_path / "x", SynthSpec(**SMALL, image_noise=1.0), images_from=tmp_path)

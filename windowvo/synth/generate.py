@@ -364,7 +364,11 @@ def _frame_image(renderer: Renderer, spec: SynthSpec, i: int, t: float, T_wb: np
         img = 128.0 + 0.08 * (img - float(img.mean()))
     if spec.image_noise > 0:
         img = img + rng.normal(0, spec.image_noise, img.shape).astype(np.float32)
-    img8 = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    return _edited(spec, i, np.clip(img + 0.5, 0, 255).astype(np.uint8), hidden)
+
+
+def _edited(spec: SynthSpec, i: int, img8: np.ndarray, hidden: np.ndarray | None) -> np.ndarray:
+    """The frame faults that edit a rendered frame: the floor hidden (its pixels at the rest's mean), black."""
     if hidden is not None and i < spec.floor_hidden_frames:
         img8[hidden] = int(img8[~hidden].mean())
     if i in spec.black_frames:
@@ -372,12 +376,26 @@ def _frame_image(renderer: Renderer, spec: SynthSpec, i: int, t: float, T_wb: np
     return img8
 
 
+def pixels_spec(spec: SynthSpec) -> SynthSpec:
+    """The spec whose render holds ``spec``'s pixels before its frame faults: what only the estimator is told (the
+    wheels' errors in odometry.csv, the claimed mount in camera.yaml) changes no pixel, and without image noise
+    (whose random draws follow the rendered frames) the frame faults (hidden floor, black, duplicate, dropped,
+    corrupt frames) are edits of the rendered frames. ``generate_sequence(out, spec, images_from=...)`` takes the
+    images of that render."""
+    base = replace(spec, wheel=WheelErrorModel(), calib_pitch_error_deg=0.0)
+    if spec.image_noise == 0:
+        base = replace(base, floor_hidden_frames=0, black_frames=[], duplicate_frames=[], dropped_frames=[],
+                       corrupt_frames=[])
+    return base
+
+
 def _write_images(folder: Path, world: SyntheticWorld, frames: list[tuple[int, float, np.ndarray]],
-                  progress: bool | Callable[[int, int], None]) -> None:
-    """Render and write the kept frames ``(index, time, T_world_base)``, with the spec's faults; ``progress``:
-    True prints a line every 50 frames, a callable gets (frames written, frames in all) after each."""
+                  progress: bool | Callable[[int, int], None], images_from: Path | None = None) -> None:
+    """Render (or, with ``images_from``, read from the render of ``pixels_spec``) and write the kept frames
+    ``(index, time, T_world_base)``, with the spec's faults; ``progress``: True prints a line every 50 frames, a
+    callable gets (frames written, frames in all) after each."""
     spec = world.spec
-    renderer = Renderer(world.scene, world.camera, seed=spec.seed)
+    renderer = Renderer(world.scene, world.camera, seed=spec.seed) if images_from is None else None
     rng = np.random.default_rng(spec.seed + 1)
     hidden = below_horizon(world.camera) if spec.floor_hidden_frames > 0 else None
     last_img = None
@@ -389,13 +407,24 @@ def _write_images(folder: Path, world: SyntheticWorld, frames: list[tuple[int, f
         if i in spec.duplicate_frames and last_img is not None:
             cv2.imwrite(str(name), last_img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
             continue
-        img8 = _frame_image(renderer, spec, i, t, T_wb, rng, hidden)
+        if renderer is not None:
+            img8 = _frame_image(renderer, spec, i, t, T_wb, rng, hidden)
+        else:
+            assert images_from is not None
+            img8 = _edited(spec, i, _read_frame(images_from / f"{i:06d}.png"), hidden)
         cv2.imwrite(str(name), img8, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         last_img = img8
         if callable(progress):
             progress(k + 1, len(frames))
         elif progress and k % 50 == 0:
             print(f"rendered {k}/{len(frames)}", flush=True)
+
+
+def _read_frame(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise ValueError(f"images_from: cannot read {path}")
+    return img
 
 
 def _write_tables(out: Path, world: SyntheticWorld, times: np.ndarray, gt_poses: list[np.ndarray]) -> None:
@@ -414,10 +443,15 @@ def _write_tables(out: Path, world: SyntheticWorld, times: np.ndarray, gt_poses:
     (out / "synth.json").write_text(json.dumps(meta, indent=1, default=str))
 
 
-def generate_sequence(out: Path, spec: SynthSpec, progress: bool | Callable[[int, int], None] = False) -> SyntheticWorld:
+def generate_sequence(out: Path, spec: SynthSpec, progress: bool | Callable[[int, int], None] = False,
+                      images_from: Path | None = None) -> SyntheticWorld:
     """Write the native sequence of ``spec`` into ``out`` (images/, times.txt, camera.yaml, odometry.csv,
-    groundtruth.txt, synth.json)."""
+    groundtruth.txt, synth.json). ``images_from``: the images/ folder of a sequence generated from
+    ``pixels_spec(spec)``; its frames are taken instead of rendered again (the spec's frame faults applied to
+    them), the same images bit for bit (a spec with image noise is always rendered: ValueError)."""
     out = Path(out)
+    if images_from is not None and spec.image_noise > 0:
+        raise ValueError("images_from: a spec with image noise is rendered (its noise follows the rendered frames)")
     world = build_world(spec)  # validates the camera before anything is written
     (out / "images").mkdir(parents=True, exist_ok=True)
     n = round(spec.duration_s * spec.fps) + 1
@@ -425,7 +459,7 @@ def generate_sequence(out: Path, spec: SynthSpec, progress: bool | Callable[[int
     keep = [i for i in range(n) if i not in set(spec.dropped_frames)]
     frames = [(i, float(times_all[i]), world.T_world_base(times_all[i])) for i in keep]
     if spec.write_images:
-        _write_images(out / "images", world, frames, progress)
+        _write_images(out / "images", world, frames, progress, images_from)
     _write_tables(out, world, times_all[keep], [T for _, _, T in frames])
     return world
 
