@@ -156,13 +156,17 @@ def smart_params(cfg: BackendConfig) -> gtsam.SmartProjectionParams:
     return p
 
 
+@lru_cache(maxsize=64)
+def smart_pixel_noise(sigma_px: float):
+    """Isotropic Gaussian pixel noise of a smart factor (GTSAM's smart factors take no robust loss); one per sigma."""
+    return gtsam.noiseModel.Isotropic.Sigma(2, sigma_px)
+
+
 def smart_factor(observations: list[tuple[int, np.ndarray]], sigma_px: float, K: gtsam.Cal3_S2,
                  body_P_sensor: gtsam.Pose3, params: gtsam.SmartProjectionParams):
     """One landmark's smart projection factor over its observations (pose key, undistorted pixel): the
-    point is triangulated from the poses and eliminated, so the factor connects the poses only. The pixel
-    noise is isotropic Gaussian (GTSAM's smart factors take no robust loss)."""
-    f = gtsam.SmartProjectionPoseFactorCal3_S2(gtsam.noiseModel.Isotropic.Sigma(2, sigma_px), K, body_P_sensor,
-                                                params)
+    point is triangulated from the poses and eliminated, so the factor connects the poses only."""
+    f = gtsam.SmartProjectionPoseFactorCal3_S2(smart_pixel_noise(sigma_px), K, body_P_sensor, params)
     for pose_key, uv in observations:
         f.add(np.asarray(uv, float), pose_key)
     return f

@@ -80,9 +80,12 @@ class LandmarkFactors:
 
     def _add_smart(self, tid: int, track: SmartTrack, graph, owners: list) -> None:
         """A smart landmark's factor over all its observations, into the update (owned by its oldest keyframe)."""
-        stretch = float(np.mean([sc for _, _, sc in track.observations])) if self.cfg.propagate_lens_noise else 1.0
+        obs = track.observations
+        stretch = sum(sc for _, _, sc in obs) / len(obs) if self.cfg.propagate_lens_noise else 1.0
+        if abs(stretch - 1.0) < 0.05:  # as _pixel_noise: a pinhole's is 1
+            stretch = 1.0
         assert self.smart_params is not None
-        track.factor = fac.smart_factor([(X(kk), uv) for kk, uv, _ in track.observations],
+        track.factor = fac.smart_factor([(X(kk), uv) for kk, uv, _ in obs],
                                         self.cfg.pixel_sigma * stretch, self.K, self.body_P_sensor, self.smart_params)
         graph.add(track.factor)
         owners.append((tid, track.first_kf, False))
