@@ -316,7 +316,7 @@ class BackendConfig(_Section):
                                           "point state and robust projection factors each) or smart (GTSAM smart "
                                           "projection factors, no point state; Gaussian pixel noise with the "
                                           "landmark dropped when an observation reprojects beyond "
-                                          "outlier_residual_px); floor landmarks stay explicit")
+                                          "outlier_residual_px); floor landmarks stay explicit. Measured less accurate (docs/performance.md)")
     min_landmark_observations: int = Field(3, ge=2, le=20, description="keyframes that must see a track before it is "
                                                                        "triangulated")
     extra_iterations: int = Field(0, ge=0, le=10, description="extra iSAM2 updates per keyframe")
