@@ -55,6 +55,12 @@ class RobustKind(str, enum.Enum):
     NONE = "none"
 
 
+class LandmarkModel(str, enum.Enum):
+    """How the back end's landmarks off the floor enter the window (floor landmarks are always explicit)."""
+    EXPLICIT = "explicit"  # a point state L(id) per landmark, one projection factor per observation
+    SMART = "smart"  # GTSAM smart projection factors: the point is eliminated, one factor per landmark
+
+
 class WheelClockMode(str, enum.Enum):
     ESTIMATE = "estimate"  # estimate the wheels' time offset online from the turns and apply it once observable
     OFF = "off"  # estimate and report it, read the wheels at the camera's times
@@ -306,6 +312,11 @@ class BackendConfig(_Section):
                                    "the window then holds window_keyframes to window_keyframes + N - 1 keyframes, "
                                    "and only one update in N pays for a marginalisation (1: every update)")
     max_landmarks: int = Field(150, ge=10, le=5000, description="landmark budget of the window")
+    landmark_model: LandmarkModel = Field(LandmarkModel.EXPLICIT, description="landmarks off the floor: explicit (a "
+                                          "point state and robust projection factors each) or smart (GTSAM smart "
+                                          "projection factors, no point state; Gaussian pixel noise with the "
+                                          "landmark dropped when an observation reprojects beyond "
+                                          "outlier_residual_px); floor landmarks stay explicit. Measured less accurate (docs/performance.md)")
     min_landmark_observations: int = Field(3, ge=2, le=20, description="keyframes that must see a track before it is "
                                                                        "triangulated")
     extra_iterations: int = Field(0, ge=0, le=10, description="extra iSAM2 updates per keyframe")

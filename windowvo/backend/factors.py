@@ -30,6 +30,10 @@ from ..config import BackendConfig, RobustKind
 FREE_SIGMA = 1e3
 # Yaw uncertainty added per radian of turn in one odometry step (wheel geometry errors grow with turning).
 YAW_SIGMA_PER_RAD = 0.02
+# Smart projection factors: re-triangulate when a pose moved this much (Kimera-VIO's setting), and the rank
+# tolerance of their triangulation.
+SMART_RETRIANGULATION_THRESHOLD = 1e-3
+SMART_RANK_TOLERANCE = 1.0
 # Symbols of the smoother's states (each needs a relinearisation threshold, see relinearize_thresholds).
 POSE_SYMBOL, LANDMARK_SYMBOL, FLOOR_LANDMARK_SYMBOL, CALIBRATION_SYMBOL = "x", "l", "g", "c"
 
@@ -136,6 +140,36 @@ def projection_factor(uv: np.ndarray, pose_key: int, landmark_key: int, noise, K
                       body_P_sensor: gtsam.Pose3):
     """Reprojection of a landmark into the camera of a keyframe (undistorted pixels, pinhole K)."""
     return gtsam.GenericProjectionFactorCal3_S2(np.asarray(uv, float), noise, pose_key, landmark_key, K, body_P_sensor)
+
+
+def smart_params(cfg: BackendConfig) -> gtsam.SmartProjectionParams:
+    """Settings of the smart projection factors (``backend.landmark_model: smart``), as Kimera-VIO's: a Hessian
+    on the poses, zero (no information) when the point cannot be triangulated or falls behind a camera, and the
+    landmark dropped when it lies further than ``max_landmark_depth_m`` or an observation reprojects beyond
+    ``outlier_residual_px`` (a smart factor takes no robust loss)."""
+    p = gtsam.SmartProjectionParams(gtsam.LinearizationMode.HESSIAN, gtsam.DegeneracyMode.ZERO_ON_DEGENERACY,
+                                    False, False, SMART_RETRIANGULATION_THRESHOLD)
+    p.setRankTolerance(SMART_RANK_TOLERANCE)
+    p.setLandmarkDistanceThreshold(cfg.max_landmark_depth_m)
+    p.setDynamicOutlierRejectionThreshold(cfg.outlier_residual_px)
+    p.setEnableEPI(False)
+    return p
+
+
+@lru_cache(maxsize=64)
+def smart_pixel_noise(sigma_px: float):
+    """Isotropic Gaussian pixel noise of a smart factor (GTSAM's smart factors take no robust loss); one per sigma."""
+    return gtsam.noiseModel.Isotropic.Sigma(2, sigma_px)
+
+
+def smart_factor(observations: list[tuple[int, np.ndarray]], sigma_px: float, K: gtsam.Cal3_S2,
+                 body_P_sensor: gtsam.Pose3, params: gtsam.SmartProjectionParams):
+    """One landmark's smart projection factor over its observations (pose key, undistorted pixel): the
+    point is triangulated from the poses and eliminated, so the factor connects the poses only."""
+    f = gtsam.SmartProjectionPoseFactorCal3_S2(smart_pixel_noise(sigma_px), K, body_P_sensor, params)
+    for pose_key, uv in observations:
+        f.add(np.asarray(uv, float), pose_key)
+    return f
 
 
 # ---------------------------------------------------------------------------- planar motion

@@ -6,6 +6,11 @@ the landmark budgets (``new_landmark_factors``): triangulated longest track firs
 birth prior, its projection factors on the window's keyframes and, on the floor (``FloorModel.floor_of``),
 its ground factor (``FloorModel.birth_ground_factor``). The landmarks' bookkeeping is the landmark
 manager's (``landmarks.py``); the window owns the keys' timestamps and the smoother.
+
+With ``backend.landmark_model: smart`` the landmarks off the floor are GTSAM smart projection factors
+(no point state): one factor per landmark over its observations in the window; a new observation
+replaces it (the old slot is removed in the same update, as Kimera-VIO's ``updateLandmarkInGraph``).
+Floor landmarks stay explicit: their ground factors need the point ``G(id)``.
 """
 
 from __future__ import annotations
@@ -14,12 +19,12 @@ import gtsam
 import numpy as np
 
 from ..camera import CameraModel
-from ..config import BackendConfig
+from ..config import BackendConfig, LandmarkModel
 from ..types import FrontendOutput
 from . import factors as fac
 from .factors import L, X
 from .floor import FloorModel
-from .landmarks import LandmarkManager
+from .landmarks import LandmarkManager, SmartTrack
 
 
 def within_budget(born: list[tuple[int, np.ndarray]], on_floor: np.ndarray, budgets: tuple[int, int]
@@ -52,18 +57,38 @@ class LandmarkFactors:
         self.K = K
         self.body_P_sensor = body_P_sensor
         self.pixel_noise = fac.pixel_noise(cfg)
+        self.smart = cfg.landmark_model is LandmarkModel.SMART
+        self.smart_params = fac.smart_params(cfg) if self.smart else None
 
-    def observation_factors(self, k: int, graph, stamps: dict[int, float], owners: list, fo: FrontendOutput,
-                            allow_new: bool) -> tuple[int, list[int]]:
-        """Projection factors of the landmarks keyframe k sees. Returns their number and the tracks
-        that may become landmarks now."""
-        seen, candidates = self.lm.observe(fo.track_ids, fo.pixels_undistorted, k, allow_new, fo.pixel_sigma_scale)
+    def observation_factors(self, k: int, w0: int, graph, stamps: dict[int, float], owners: list,
+                            fo: FrontendOutput, allow_new: bool) -> tuple[int, list[int]]:
+        """Projection factors of the landmarks keyframe k sees (``w0`` the window's start; a smart landmark's
+        factor is replaced by one with this observation). Returns their number and the tracks that may become
+        landmarks now."""
+        seen, candidates = self.lm.observe(fo.track_ids, fo.pixels_undistorted, k, allow_new, fo.pixel_sigma_scale,
+                                           window_start=w0)
         for tid, uv, sc in seen:
-            key = self.lm.landmarks[tid].key
-            graph.add(fac.projection_factor(uv, X(k), key, self._pixel_noise(sc), self.K, self.body_P_sensor))
+            lm = self.lm.landmarks[tid]
+            if lm.smart is not None:
+                self.lm.replace_smart(tid)
+                self._add_smart(tid, lm.smart, graph, owners)
+                continue
+            graph.add(fac.projection_factor(uv, X(k), lm.key, self._pixel_noise(sc), self.K, self.body_P_sensor))
             owners.append((tid, k, False))
-            stamps[key] = float(k)
+            stamps[lm.key] = float(k)
         return len(seen), candidates
+
+    def _add_smart(self, tid: int, track: SmartTrack, graph, owners: list) -> None:
+        """A smart landmark's factor over all its observations, into the update (owned by its oldest keyframe)."""
+        obs = track.observations
+        stretch = sum(sc for _, _, sc in obs) / len(obs) if self.cfg.propagate_lens_noise else 1.0
+        if abs(stretch - 1.0) < 0.05:  # as _pixel_noise: a pinhole's is 1
+            stretch = 1.0
+        assert self.smart_params is not None
+        track.factor = fac.smart_factor([(X(kk), uv) for kk, uv, _ in obs],
+                                        self.cfg.pixel_sigma * stretch, self.K, self.body_P_sensor, self.smart_params)
+        graph.add(track.factor)
+        owners.append((tid, track.first_kf, False))
 
     def new_landmark_factors(self, k: int, w0: int, graph, values, stamps: dict[int, float], owners: list,
                              candidates: list[int], T_guess: np.ndarray) -> tuple[list[int], int, int]:
@@ -85,6 +110,12 @@ class LandmarkFactors:
         n_vis = n_ground = 0
         n_floor = int(np.count_nonzero(on_floor))  # the floor points keyframe k ties (they share its floor's error)
         for (tid, p), floor in zip(born, on_floor):
+            new_lms.append(tid)
+            if self.smart and not floor:
+                track = self.lm.promote_smart(tid, k, w0)
+                self._add_smart(tid, track, graph, owners)
+                n_vis += len(track.observations)
+                continue
             key = fac.G(tid) if floor else L(tid)
             values.insert(key, gtsam.Point3(p))
             stamps[key] = float(k)
@@ -100,7 +131,6 @@ class LandmarkFactors:
                 graph.add(floor_model.birth_ground_factor(k, key, p, T_guess, up_world, n_base, n_floor))
                 owners.append((tid, k, up_world is None))
                 n_ground += 1
-            new_lms.append(tid)
         return new_lms, n_vis, n_ground
 
     def _pixel_noise(self, stretch: float):

@@ -19,7 +19,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import BackendConfig
 from ..geometry import inv_T
-from .factors import G, L
+from .factors import G, L, X
 
 # Minimum correspondences for PnP on the window's landmarks, and inliers to accept its pose.
 PNP_MIN_POINTS = 12
@@ -33,13 +33,38 @@ MAX_DEAD_IDS, KEEP_DEAD_IDS = 50_000, 20_000
 
 
 @dataclass
+class SmartTrack:
+    """A landmark kept as a smart projection factor (``backend.landmark_model: smart``): no point state; its
+    observations in the window and the factor over them now in the smoother. A new observation replaces the
+    factor (a fresh one over all the observations; the old one's slot is removed in the same update)."""
+
+    observations: list[tuple[int, np.ndarray, float]]  # (keyframe, undistorted px, noise stretch), keyframe order
+    factor: gtsam.SmartProjectionPoseFactorCal3_S2 | None = None  # the one in the smoother
+
+    @property
+    def first_kf(self) -> int:
+        """The oldest keyframe it observes: its factor is marginalised (gone from the smoother) when that leaves."""
+        return self.observations[0][0]
+
+    def point(self, estimate: gtsam.Values) -> np.ndarray | None:
+        """p_world_landmark triangulated by its factor from the poses of ``estimate`` (None: degenerate, behind a
+        camera, too far, an outlier, or its factor no longer in the window)."""
+        if self.factor is None or not estimate.exists(X(self.first_kf)):
+            return None
+        result = self.factor.point(estimate)
+        return np.asarray(result.get(), float) if result.valid() else None
+
+
+@dataclass
 class LandmarkState:
     key: int
     last_kf: int
-    factor_indices: list[tuple[int, int]] = field(default_factory=list)  # (keyframe, smoother factor index)
+    # (keyframe, smoother factor index); of a smart landmark, the one of its factor with its oldest keyframe.
+    factor_indices: list[tuple[int, int]] = field(default_factory=list)
     strikes: int = 0
     on_ground: bool = False
     ground_factor: tuple[int, int] | None = None  # (keyframe, smoother factor index) of its native ground factor
+    smart: SmartTrack | None = None  # a smart landmark (no point state L(id) in the smoother)
 
 
 def reprojection_errors(camera: CameraModel, T_world_base: np.ndarray, T_base_cam: np.ndarray,
@@ -86,7 +111,11 @@ class LandmarkManager:
         if estimate is None:
             return
         for tid, lm in self.landmarks.items():
-            if estimate.exists(lm.key):
+            if lm.smart is not None:
+                p = lm.smart.point(estimate)
+                if p is not None:
+                    self._where[tid] = p
+            elif estimate.exists(lm.key):
                 self._where[tid] = estimate.atPoint3(lm.key)
 
     def positions(self) -> tuple[np.ndarray, np.ndarray]:
@@ -128,13 +157,16 @@ class LandmarkManager:
         return inv_T(T_cam_world) @ inv_T(self.T_base_cam)
 
     # ------------------------------------------------------------------ observations
-    def observe(self, fo_ids: np.ndarray, uv: np.ndarray, k: int, allow_new: bool, stretch: np.ndarray | None = None
-                ) -> tuple[list[tuple[int, np.ndarray, float]], list[int]]:
+    def observe(self, fo_ids: np.ndarray, uv: np.ndarray, k: int, allow_new: bool, stretch: np.ndarray | None = None,
+                window_start: int = 0) -> tuple[list[tuple[int, np.ndarray, float]], list[int]]:
         """Sort this keyframe's tracks: observations of existing landmarks, and tracks ready to triangulate.
 
         Returns ``(seen, candidates)``: (track id, pixel, noise stretch) of live landmarks (their timestamps
         must be refreshed), and ids of tracks seen by enough keyframes, longest first. ``stretch`` is the
         lens's pixel-noise stretch per track (1 for a pinhole; ``FrontendOutput.pixel_sigma_scale``).
+        A smart landmark takes the observation into its track; one whose factor this update marginalises
+        (its oldest keyframe before ``window_start``) ends there, and its track starts afresh from this
+        observation (as Kimera-VIO's: what the old factor knew stays in the marginal).
         """
         seen: list[tuple[int, np.ndarray, float]] = []
         candidates: list[int] = []
@@ -143,8 +175,13 @@ class LandmarkManager:
             if tid in self.dead:
                 continue
             lm = self.landmarks.get(tid)
+            if lm is not None and lm.smart is not None and lm.smart.first_kf < window_start:
+                del self.landmarks[tid]
+                lm = None
             if lm is not None:
                 lm.last_kf = k
+                if lm.smart is not None:
+                    lm.smart.observations.append((k, np.asarray(p, float), sc))
                 seen.append((tid, p, sc))
                 continue
             lst = self.obs.setdefault(tid, [])
@@ -182,6 +219,18 @@ class LandmarkManager:
         """Turn a triangulated track into a landmark; returns its stored observations."""
         self.landmarks[tid] = LandmarkState(G(tid) if on_ground else L(tid), k, on_ground=on_ground)
         return self.obs.pop(tid)
+
+    def promote_smart(self, tid: int, k: int, window_start: int) -> SmartTrack:
+        """Turn a triangulated track into a smart landmark over its observations in the window."""
+        track = SmartTrack([o for o in self.obs.pop(tid) if o[0] >= window_start])
+        self.landmarks[tid] = LandmarkState(L(tid), k, smart=track)
+        return track
+
+    def replace_smart(self, tid: int) -> None:
+        """A smart landmark's factor is replaced in this update: its old slot is removed in it."""
+        lm = self.landmarks[tid]
+        self.pending_removal.extend(fi for _, fi in lm.factor_indices)
+        lm.factor_indices.clear()
 
     def record_factors(self, owners: list[tuple[int, int, bool] | None], indices: list[int]) -> None:
         """Remember the smoother's index of each factor a landmark owns, per (track id, keyframe, is its
@@ -223,8 +272,11 @@ class LandmarkManager:
 
     # ------------------------------------------------------------------ lifecycle
     def prune(self, window_start: int) -> None:
-        """Forget the bookkeeping of landmarks and observations the smoother has marginalised."""
+        """Forget the bookkeeping of landmarks and observations the smoother has marginalised. A smart landmark
+        whose factor was marginalised ends (its track may start afresh, see ``observe``)."""
         self.forget([t for t, lm in self.landmarks.items() if lm.last_kf < window_start])
+        for tid in [t for t, lm in self.landmarks.items() if lm.smart is not None and lm.smart.first_kf < window_start]:
+            del self.landmarks[tid]
         for tid, track in list(self.obs.items()):
             if track[0][0] >= window_start:  # observations are in keyframe order: nothing to drop
                 continue

@@ -313,10 +313,11 @@ class SlidingWindowBackend:
         new_lms: list[int] = []
         n_vis = n_ground = 0
         if use_vision:
-            n_vis, candidates = self.vision.observation_factors(k, graph, stamps, owners, fo, allow_new)
+            n_vis, candidates = self.vision.observation_factors(k, w0, graph, stamps, owners, fo, allow_new)
             new_lms, n_born_vis, n_ground = self.vision.new_landmark_factors(k, w0, graph, values, stamps, owners,
                                                                              candidates, T_guess)
             n_vis += n_born_vis
+            remove = remove + self.lm.take_removals()  # the slots of the smart factors replaced just now
         lap(Stage.BACKEND_FACTORS)
         idx = self._solve(graph, values, stamps, remove, new_lms)  # times the update and the estimate itself
         lap.skip()
