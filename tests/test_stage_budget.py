@@ -133,3 +133,17 @@ def test_the_shares_are_of_every_thread_and_add_up_to_the_whole(timed_run):
         shares = [float(line.rstrip(" |").rsplit("|", 1)[1].strip().rstrip("%")) for line in rows]
         assert len(rows) == len(r["frame_rows"]) + len(r["run_rows"]) + (untimed is not None)
         assert sum(shares) == pytest.approx(100.0, abs=0.05 * len(shares) + 1e-9)
+
+
+def test_the_stages_suite_takes_overrides(tmp_path, monkeypatch):
+    """`bench --suite stages --set KEY=VALUE` reaches each case's job; the run mode stays sequential."""
+    from windowvo.tools import stage_budget
+
+    seen = {}
+    monkeypatch.setattr(stage_budget, "measure_job", lambda cfg, name="": seen.setdefault("cfg", cfg))
+    from windowvo.tools.bench import CaseKind, SeqCase
+
+    tiny = SeqCase("tiny", CaseKind.SYNTH, spec=dict(duration_s=0.3, width=64, height=48, fx=40.0))
+    stage_budget.budget_job(tiny, str(tmp_path), str(tmp_path / "out"), ("backend.max_landmarks=80", "run_mode=pipelined"))
+    cfg = seen["cfg"]
+    assert cfg.backend.max_landmarks == 80 and cfg.run_mode.value == "sequential"

@@ -47,7 +47,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=int, default=3, help="speed: alternated pairs of whole processes per sequence "
                    "(the fastest of each counts)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="config override for every windowvo run of the sequences and the scale suites (repeatable; "
+                   help="config override for every windowvo run of the sequences, scale and stages suites (repeatable; "
                         "the scale suite's cue switches of each way still apply), "
                         "e.g. --set backend.marginalize_every=1")
     return p
@@ -150,10 +150,10 @@ def _scale(a, out: Path, cache: Path) -> dict:
     return {"rows": rows, "summary": s}
 
 
-def _stages(cache: Path, out: Path) -> dict:
+def _stages(a, cache: Path, out: Path) -> dict:
     from ..tools import stage_budget
 
-    res = stage_budget.bench_stages(cache, out)
+    res = stage_budget.bench_stages(cache, out, tuple(a.set))
     print("## Per-stage CPU budget (thread CPU time, sequential mode, recording on)\n")
     print(stage_budget.stages_text(res))
     return res
@@ -193,7 +193,7 @@ def main(argv=None) -> int:
     suites = {"sequences": lambda: _sequences(a, out, cache), "frontend": lambda: _frontend(cache),
               "backend": lambda: _backend(a.backend_keyframes), "rerun": lambda: _rerun(cache, out),
               "modes": lambda: _modes(cache, out), "memory": lambda: _memory(cache, out), "bag": lambda: _bag(cache, out),
-              "scale": lambda: _scale(a, out, cache), "stages": lambda: _stages(cache, out),
+              "scale": lambda: _scale(a, out, cache), "stages": lambda: _stages(a, cache, out),
               "speed": lambda: _speed(a, cache, out)}
     try:
         results: dict = {name: run() for name, run in suites.items() if name in a.suite}

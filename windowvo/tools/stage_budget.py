@@ -125,14 +125,17 @@ def budget(times: StageTimes, name: str, size: str) -> dict:
             "other_threads_timed_ms": float(sum(sum(v) for v in times.other_threads_ms.values()))}
 
 
-def budget_job(case: SeqCase, cache: str, out_root: str) -> dict:
-    """One case's job (sequential, recording on) with the stage timers on; runs in a fresh interpreter."""
+def budget_job(case: SeqCase, cache: str, out_root: str, overrides: tuple[str, ...] = ()) -> dict:
+    """One case's job (sequential, recording on, ``overrides`` as ``--set KEY=VALUE``) with the stage timers on;
+    runs in a fresh interpreter."""
     import logging
 
     logging.basicConfig(level=logging.ERROR)
     from ..config import config_from_dict
 
-    return measure_job(config_from_dict(case_config_data(case, Path(cache), Path(out_root), rerun=True)), case.name)
+    data = case_config_data(case, Path(cache), Path(out_root), rerun=True, overrides=overrides)
+    data["run_mode"] = "sequential"  # each stage's CPU is its own (an override cannot change it)
+    return measure_job(config_from_dict(data), case.name)
 
 
 def startup_cpu(repeats: int = 3) -> dict:
@@ -150,8 +153,9 @@ def startup_cpu(repeats: int = 3) -> dict:
     return out
 
 
-def bench_stages(cache: Path, out_root: Path) -> dict:
-    """The 640x480 and the KITTI-size case, each in a fresh interpreter, and the start-up."""
+def bench_stages(cache: Path, out_root: Path, overrides: tuple[str, ...] = ()) -> dict:
+    """The 640x480 and the KITTI-size case, each in a fresh interpreter (``overrides``: ``--set KEY=VALUE`` for
+    both), and the start-up."""
     from .bench import ensure_rendered
     from .executors import values_in_processes
 
@@ -159,9 +163,9 @@ def bench_stages(cache: Path, out_root: Path) -> dict:
     for c in cases:
         if c.kind is CaseKind.SYNTH:
             ensure_rendered(c, cache)
-    rows = values_in_processes([(c.name, budget_job, (c, str(cache), str(out_root / "stages"))) for c in cases], 1,
-                               "bench stages")
-    res = {"cases": rows, "startup_cpu_s": startup_cpu()}
+    rows = values_in_processes([(c.name, budget_job, (c, str(cache), str(out_root / "stages"), tuple(overrides)))
+                                for c in cases], 1, "bench stages")
+    res = {"cases": rows, "startup_cpu_s": startup_cpu(), "overrides": list(overrides)}
     (out_root / "stages").mkdir(parents=True, exist_ok=True)
     (out_root / "stages" / "stages.json").write_text(json.dumps(res, indent=2))
     return res
