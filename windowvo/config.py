@@ -55,6 +55,11 @@ class RobustKind(str, enum.Enum):
     NONE = "none"
 
 
+def yaml_off(v):
+    """An enum value ``off`` as YAML 1.1 reads a bare `off`: as false."""
+    return "off" if v is False else v
+
+
 class LandmarkModel(str, enum.Enum):
     """How the back end's landmarks off the floor enter the window (floor landmarks are always explicit)."""
     EXPLICIT = "explicit"  # a point state L(id) per landmark, one projection factor per observation
@@ -186,8 +191,7 @@ class OdometryNoiseConfig(_Section):
     @field_validator("time_offset", mode="before")
     @classmethod
     def _yaml_off(cls, v):
-        # YAML 1.1 reads a bare `off` as false.
-        return "off" if v is False else v
+        return yaml_off(v)
 
     @model_validator(mode="after")
     def _offset_needs_fixed(self) -> OdometryNoiseConfig:
@@ -403,8 +407,7 @@ class VizConfig(_Section):
     @field_validator("rerun", mode="before")
     @classmethod
     def _yaml_off(cls, v):
-        # YAML 1.1 reads a bare `off` as false.
-        return "off" if v is False else v
+        return yaml_off(v)
     track_tail: int = Field(10, ge=0, le=100, description="frames of track history drawn as tails on the image")
 
 

@@ -81,9 +81,7 @@ class LandmarkFactors:
     def _add_smart(self, tid: int, track: SmartTrack, graph, owners: list) -> None:
         """A smart landmark's factor over all its observations, into the update (owned by its oldest keyframe)."""
         obs = track.observations
-        stretch = sum(sc for _, _, sc in obs) / len(obs) if self.cfg.propagate_lens_noise else 1.0
-        if abs(stretch - 1.0) < 0.05:  # as _pixel_noise: a pinhole's is 1
-            stretch = 1.0
+        stretch = self._used_stretch(sum(sc for _, _, sc in obs) / len(obs))
         assert self.smart_params is not None
         track.factor = fac.smart_factor([(X(kk), uv) for kk, uv, _ in obs],
                                         self.cfg.pixel_sigma * stretch, self.K, self.body_P_sensor, self.smart_params)
@@ -136,9 +134,12 @@ class LandmarkFactors:
     def _pixel_noise(self, stretch: float):
         """Projection noise of one observation: the lens's stretch of the undistortion at that pixel scales
         the sensor's pixel sigma (exactly 1 for a pinhole, up to 1/cos^2 of the ray angle for a fisheye)."""
-        if not self.cfg.propagate_lens_noise or abs(stretch - 1.0) < 0.05:
-            return self.pixel_noise
-        return fac.pixel_noise(self.cfg, stretch)
+        stretch = self._used_stretch(stretch)
+        return self.pixel_noise if stretch == 1.0 else fac.pixel_noise(self.cfg, stretch)
+
+    def _used_stretch(self, stretch: float) -> float:
+        """The lens stretch a projection noise uses: 1 without lens noise propagation or within 5% of 1 (a pinhole)."""
+        return 1.0 if not self.cfg.propagate_lens_noise or abs(stretch - 1.0) < 0.05 else stretch
 
     def _triangulate_candidates(self, candidates: list[int], cams, T_guess: np.ndarray,
                                 budgets: tuple[int, int]) -> list[tuple[int, np.ndarray]]:

@@ -141,16 +141,13 @@ class Odometry:
         """One wheel-odometry sample: planar pose of the base in the odometry frame at time t (s)."""
         self.wheels.append(t, x, y, yaw)
 
-    def _wheels(self) -> WheelOdometry | None:
-        """The wheel samples on the camera's clock (shifted by the applied offset); None without wheel factors."""
-        return self._camera_clock_wheels() if self.use_odometry else None
-
     def wheels_on_camera_clock(self) -> WheelOdometry | None:
         """The wheel samples so far as this odometry reads them: on the camera's clock, shifted by the offset
         applied (``backend.odometry.time_offset``); None without wheels in use."""
-        return self._wheels()
+        return self._camera_clock_wheels() if self.use_odometry else None
 
     def _camera_clock_wheels(self) -> WheelOdometry | None:
+        """The same for every sample fed (the standstill check reads them with or without wheel factors)."""
         raw = self.wheels.view()
         if raw is None or self.wheel_offset_s == 0.0:
             return raw
@@ -253,7 +250,7 @@ class Odometry:
     def _tracked(self, tr: TrackedFrame) -> TrackedFrame:
         self._n_tracked += 1
         self._last_t = tr.timestamp
-        odo = self._wheels()
+        odo = self.wheels_on_camera_clock()
         if self.last_kf_time is not None:
             tr.wheel_delta = (odo.delta(self.last_kf_time, tr.timestamp)
                               if odo is not None and tr.timestamp > self.last_kf_time else np.eye(4))
@@ -289,7 +286,7 @@ class Odometry:
         return float(np.hypot(d[0, 3], d[1, 3])), abs(float(np.arctan2(d[1, 0], d[0, 0])))
 
     def _odom_step(self, t0: float, t1: float) -> OdometryStep | None:
-        odo = self._wheels()
+        odo = self.wheels_on_camera_clock()
         if not self.use_odometry:
             return None
         if odo is None:
@@ -323,7 +320,7 @@ class Odometry:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
         kf_poses = [self.kf_pose_by_frame[f] for f, _ in done]
         kf_t = np.asarray([t for _, t in done])
-        odo = self._wheels()
+        odo = self.wheels_on_camera_clock()
         ts, poses = [], []
         for _, t in self.frames:
             j = int(np.searchsorted(kf_t, t, side="right")) - 1
