@@ -53,6 +53,12 @@ def main() -> int:
     p.add_argument("--work", type=Path, required=True, help="folder for the shifted sequences, runs and results")
     p.add_argument("--offsets-ms", default="0,15,30,50,-20", help="comma-separated offsets (ms); 0 is always run")
     a = p.parse_args()
+    for seq in a.sequences:  # bad input: one line, exit 2
+        missing = [n for n in ("odometry.csv", "groundtruth.txt") if not (seq / n).is_file()]
+        if missing:
+            print(f"wheel_clock_sweep: error: {seq} has no {' and no '.join(missing)} (a native sequence with wheels "
+                  "and ground truth is needed)", file=sys.stderr)
+            return 2
     logging.basicConfig(level=logging.ERROR)
     offsets = sorted({0.0, *(float(x) for x in a.offsets_ms.split(","))}, key=lambda x: (x != 0, x))
     a.work.mkdir(parents=True, exist_ok=True)
