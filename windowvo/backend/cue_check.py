@@ -29,9 +29,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from scipy.special import gammaincinv
-
 from ..config import CueCheckConfig
+from .chi2 import chi2_quantile
 
 
 @dataclass(frozen=True)
@@ -60,7 +59,7 @@ class CueCheck:
         self.camera_height_m = camera_height_m
         self.wheel_scale_sigma = wheel_scale_sigma
         self.floor_sigma_fraction = floor_sigma_fraction  # one keyframe's floor height, as a share of itself
-        self.threshold = float(2.0 * gammaincinv(0.5, cfg.confidence))  # chi-square quantile, 1 degree of freedom
+        self.threshold = chi2_quantile(1, cfg.confidence)  # chi-square quantile, 1 degree of freedom
         self._steps: deque[_Step] = deque(maxlen=cfg.stretch_keyframes)
         self.tests: list[CueAgreement] = []
         self.disagree_since: int | None = None  # first keyframe of the current disagreement

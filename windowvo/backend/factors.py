@@ -22,9 +22,9 @@ from functools import lru_cache, partial
 
 import gtsam
 import numpy as np
-from scipy.special import gammaincinv
 
 from ..config import BackendConfig, RobustKind
+from .chi2 import chi2_quantile
 
 # A sigma that leaves a component of a Pose3 factor effectively free.
 FREE_SIGMA = 1e3
@@ -85,11 +85,9 @@ def relinearize_thresholds(cfg: BackendConfig) -> float | gtsam.ISAM2ThresholdMa
 @lru_cache(maxsize=64)
 def robust_threshold(dim: int, confidence: float) -> float:
     """Threshold (in sigmas of the whitened residual norm) below which a residual of dimension
-    ``dim`` is an inlier with probability ``confidence``: sqrt of the chi-square quantile, i.e. of
-    2 P^-1(dim/2, confidence) with P the regularised lower incomplete gamma function.
-
-    ``scipy.special``, not ``scipy.stats``: the latter took 0.45 s of the back-end worker's start-up."""
-    return float(math.sqrt(2.0 * gammaincinv(0.5 * dim, confidence)))
+    ``dim`` is an inlier with probability ``confidence``: sqrt of the chi-square quantile
+    (:func:`~windowvo.backend.chi2.chi2_quantile`, without scipy: see its module)."""
+    return float(math.sqrt(chi2_quantile(dim, confidence)))
 
 
 def robust(base, kind: RobustKind, k: float):
