@@ -31,6 +31,22 @@ def inv_T(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+def nearest_rotation(R: np.ndarray) -> np.ndarray:
+    """The rotation closest to a 3x3 matrix (Frobenius norm; SVD, with the determinant's sign fixed)."""
+    U, _, Vt = np.linalg.svd(R)
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)) or 1.0)])
+    return U @ D @ Vt
+
+
+def extrapolate_T(T_before: np.ndarray, T_last: np.ndarray) -> np.ndarray:
+    """The pose one step after ``T_last`` at the motion from ``T_before`` to ``T_last`` (constant velocity),
+    its rotation re-orthonormalised: extrapolating pose after pose from its own output multiplies a rotation's
+    rounding error by 1 + sqrt(2) each time (a monocular street's keyframes lost their rotations so)."""
+    T = T_last @ inv_T(T_before) @ T_last
+    T[:3, :3] = nearest_rotation(T[:3, :3])
+    return T
+
+
 def rot_x(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=float)

@@ -52,7 +52,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import BackendConfig
 from ..errors import WindowVOError
-from ..geometry import inv_T, make_T
+from ..geometry import extrapolate_T, inv_T, make_T
 from ..runtime.stage_timer import Laps, Stage, mark_keyframe
 from ..types import (
     BackendOutput,
@@ -266,12 +266,14 @@ class SlidingWindowBackend:
             T_world_cam = T_prev @ self.T_base_cam @ inv_T(T_cur_kf)
             return T_world_cam @ inv_T(self.T_base_cam)
         if k >= 2:  # constant velocity
-            d = inv_T(self.kf_pose[k - 2]) @ T_prev
-            return T_prev @ d
+            return extrapolate_T(self.kf_pose[k - 2], T_prev)
         return T_prev.copy()
 
-    def _motion_factors(self, graph, values, stamps, k: int, odom: OdometryStep | None, T_guess) -> None:
-        """First-pose prior, wheel factors (through the calibration state) or a monocular motion prior."""
+    def _motion_factors(self, graph, values, stamps, k: int, odom: OdometryStep | None, T_guess,
+                        restart: bool = False) -> None:
+        """First-pose prior, wheel factors (through the calibration state) or a monocular motion prior; a
+        monocular run's first step, and its first step after a reset (``restart``: a fresh window whose only
+        other factor is the prior on the previous pose), also fix the gauge of scale by their length."""
         if k == 0:
             graph.add(fac.first_pose_prior(X(0), np.eye(4)))
             return
@@ -283,7 +285,7 @@ class SlidingWindowBackend:
                 graph.add(f)
             return
         delta = inv_T(self.kf_pose[k - 1]) @ T_guess
-        graph.add(fac.monocular_motion_factor(k, delta, first_baseline=(k == 1 and not self.use_odometry)))
+        graph.add(fac.monocular_motion_factor(k, delta, first_baseline=(k == 1 or restart) and not self.use_odometry))
 
     def _update(self, fo: FrontendOutput, odom, T_guess, use_vision: bool, allow_new: bool) -> tuple[int, int, int]:
         """One keyframe: its pose and motion factors, its observations and new landmarks (with their ground
@@ -363,6 +365,9 @@ class SlidingWindowBackend:
                 self.smoother.update()  # more Gauss-Newton steps (iSAM2 takes one per update)
             lap(Stage.BACKEND_ISAM2)
             self.estimate = self.smoother.calculateEstimate()
+            bad = diverged_keyframe(self.estimate, range(self.window_start(), k + 1))
+            if bad is not None:  # a solve that ran off (e.g. a monocular run's scale collapsing): as a failed one
+                raise RuntimeError(f"the estimate diverged: keyframe {bad}'s pose is not a rigid motion")
             lap(Stage.BACKEND_ESTIMATE)
         except RuntimeError:
             # Undo the bookkeeping of this update before the caller resets the window.
@@ -419,7 +424,7 @@ class SlidingWindowBackend:
             values.insert(X(k - 1), gtsam.Pose3(T_prev))
             stamps[X(k - 1)] = float(k - 1)
             self.wheel.restart_from_previous(graph, values, stamps, k)
-            self._motion_factors(graph, values, stamps, k, odom, T_guess)
+            self._motion_factors(graph, values, stamps, k, odom, T_guess, restart=True)
         else:
             graph.add(fac.first_pose_prior(X(k), T_guess))
             self.wheel.restart_here(graph, values, stamps, k)
@@ -454,6 +459,24 @@ class SlidingWindowBackend:
         log.info("keyframe %d (frame %d): the floor is in view; the run is metric from here (scale x %.3f), the "
                  "trajectory so far rescaled", self.k, fo.frame_index, s)
         return {self.kf_frame[kk]: self.kf_pose[kk] for kk in range(self.window_start()) if kk in self.kf_pose}
+
+
+# A keyframe's estimated rotation must be one to this tolerance (|R^T R - I|, max entry); iSAM2's rotations
+# stay orthonormal to ~1e-12, a solve that ran off gives matrices of 1e-226 (measured: a monocular street).
+ROTATION_TOLERANCE = 1e-6
+
+
+def diverged_keyframe(estimate: gtsam.Values, keyframes) -> int | None:
+    """The first of ``keyframes`` whose pose in ``estimate`` is not finite or whose rotation is no rotation."""
+    for kk in keyframes:
+        if not estimate.exists(X(kk)):
+            continue
+        T = estimate.atPose3(X(kk)).matrix()
+        R = T[:3, :3]
+        if (not np.all(np.isfinite(T)) or np.abs(R.T @ R - np.eye(3)).max() > ROTATION_TOLERANCE
+                or np.linalg.det(R) <= 0.0):
+            return int(kk)
+    return None
 
 
 def keyframe_output(be: SlidingWindowBackend, fo: FrontendOutput, n_new: int, n_vis: int, n_ground: int,
