@@ -9,11 +9,16 @@ import shutil
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from windowvo.config import config_from_dict
+from windowvo.backend.smoother import SlidingWindowBackend
+from windowvo.config import BackendConfig, config_from_dict
+from windowvo.eval.metrics import evaluate
+from windowvo.io.trajectory import Trajectory
 from windowvo.synth.generate import SynthSpec, generate_sequence, pixels_spec
 from windowvo.synth.paths import PathKind
+from windowvo.types import OdometryStep
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -98,3 +103,22 @@ def make_config(seq: Path, out: Path, **sections):
         else:
             data[k] = v
     return config_from_dict(data)
+
+
+def run_backend(fs, cfg: BackendConfig, vision: bool = True, backend_cls=None):
+    """The back end alone over simulated features (``synth.features``), wheels from the simulation; the
+    back end and the keyframes' accuracy against ground truth."""
+    be = (backend_cls or SlidingWindowBackend)(fs.world.camera, cfg, use_odometry=True)
+    for i, fo in enumerate(fs.keyframes):
+        if not vision:
+            fo.vision_ok = False
+        odom = None
+        if i > 0:
+            t0, t1 = fs.keyframes[i - 1].timestamp, fo.timestamp
+            odom = OdometryStep(fs.odometry.delta(t0, t1), fs.odometry.distance(t0, t1))
+        be.add_keyframe(fo, odom)
+        fo.vision_ok = True
+    ts = np.array([f.timestamp for f in fs.keyframes])
+    est = Trajectory(ts, np.stack([be.kf_pose[k] for k in range(len(ts))]))
+    gt = Trajectory(ts, np.stack(fs.gt_T_world_base))
+    return be, evaluate(gt, est)

@@ -4,34 +4,16 @@ recovery, landmark bookkeeping (the factor builders are in test_factors.py)."""
 import gtsam
 import numpy as np
 import pytest
+from conftest import run_backend
 
 from windowvo.backend import factors as fac
 from windowvo.backend.smoother import SlidingWindowBackend, X
 from windowvo.config import BackendConfig
-from windowvo.eval.metrics import evaluate
 from windowvo.geometry import make_T, rpy_to_R
-from windowvo.io.trajectory import Trajectory
 from windowvo.synth.features import simulate_features
 from windowvo.synth.generate import SynthSpec, WheelErrorModel, build_world, simulate_wheel_odometry
 from windowvo.synth.paths import PathKind
 from windowvo.types import OdometryStep
-
-
-def run_backend(fs, cfg: BackendConfig, vision: bool = True, backend_cls=None):
-    be = (backend_cls or SlidingWindowBackend)(fs.world.camera, cfg, use_odometry=True)
-    for i, fo in enumerate(fs.keyframes):
-        if not vision:
-            fo.vision_ok = False
-        odom = None
-        if i > 0:
-            t0, t1 = fs.keyframes[i - 1].timestamp, fo.timestamp
-            odom = OdometryStep(fs.odometry.delta(t0, t1), fs.odometry.distance(t0, t1))
-        be.add_keyframe(fo, odom)
-        fo.vision_ok = True
-    ts = np.array([f.timestamp for f in fs.keyframes])
-    est = Trajectory(ts, np.stack([be.kf_pose[k] for k in range(len(ts))]))
-    gt = Trajectory(ts, np.stack(fs.gt_T_world_base))
-    return be, evaluate(gt, est)
 
 
 @pytest.fixture(scope="module")

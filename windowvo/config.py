@@ -263,6 +263,19 @@ class GroundConfig(_Section):
 
     mount_min_fits: int = Field(10, ge=1, description="floor plane fits before the learnt normal is reported and used")
     mount_fits: int = Field(200, ge=1, description="the learnt normal is the median of this many latest fits")
+    floor_state: bool = Field(
+        False, description="each keyframe that ties floor points gets a floor frame F(k) of its own: a pose state "
+        "tied to the keyframe's base pose with floor_tilt_sigma_deg in roll and pitch and floor_height_fraction in "
+        "height (tight in the rest), and its floor points are tied to the floor of F(k), not of the base. The floor "
+        "under a keyframe is then estimated geometry: its tilt against the base (a mount pitched against T_base_cam, "
+        "a base rocking on its suspension) is taken from the points, and its height is known to no better than "
+        "floor_height_fraction however many points it holds. Off: measured worse on the scale suite's rendered rooms "
+        "and warehouses, whose floors are exact (docs/scale_suite.md, \"Floor frames\")")
+    floor_tilt_sigma_deg: float = Field(1.0, gt=0, le=20, description="floor_state: sigma of the floor frame's roll "
+                                        "and pitch against the base (mount error plus rocking)")
+    floor_height_fraction: float = Field(0.015, gt=0, le=0.5, description="floor_state: sigma of the floor frame's "
+                                         "height against the base, as a share of the camera height (suspension, "
+                                         "tyres, the local surface)")
     untie_sigmas: float | None = Field(
         2.5, gt=0, description="after every update the window's tied floor landmarks are judged again: heights "
         "above the floor of the keyframe that tied each, in robust sigmas (1.4826 x MAD, at least 1% of the camera "

@@ -36,6 +36,7 @@ SMART_RETRIANGULATION_THRESHOLD = 1e-3
 SMART_RANK_TOLERANCE = 1.0
 # Symbols of the smoother's states (each needs a relinearisation threshold, see relinearize_thresholds).
 POSE_SYMBOL, LANDMARK_SYMBOL, FLOOR_LANDMARK_SYMBOL, CALIBRATION_SYMBOL = "x", "l", "g", "c"
+FLOOR_FRAME_SYMBOL = "f"
 
 
 def X(k: int) -> int:
@@ -51,6 +52,12 @@ def L(track_id: int) -> int:
 def G(track_id: int) -> int:
     """Key of ``p_world_landmark`` of track ``track_id`` when it is a floor landmark."""
     return gtsam.symbol(FLOOR_LANDMARK_SYMBOL, track_id)
+
+
+def F(k: int) -> int:
+    """Key of keyframe k's floor frame ``T_world_floor`` (``ground.floor_state``): the base pose the floor's
+    tilt and height are measured in."""
+    return gtsam.symbol(FLOOR_FRAME_SYMBOL, k)
 
 
 def C(k: int) -> int:
@@ -74,6 +81,7 @@ def relinearize_thresholds(cfg: BackendConfig) -> float | gtsam.ISAM2ThresholdMa
         return t
     m = gtsam.ISAM2ThresholdMap()
     for sym, dim, value in ((POSE_SYMBOL, 6, t), (CALIBRATION_SYMBOL, 2, t), (FLOOR_LANDMARK_SYMBOL, 3, t),
+                            (FLOOR_FRAME_SYMBOL, 6, t),
                             (LANDMARK_SYMBOL, 3, cfg.landmark_relinearize_threshold_m)):
         m.insert((sym, np.full(dim, value)))
     return m
@@ -345,6 +353,20 @@ def ground_factor(pose_key: int, landmark_key: int, p_base: np.ndarray, floor_z:
     noise = robust(gtsam.noiseModel.Gaussian.Information(info), g.robust,
                    threshold(g.robust_k, 1, cfg) * _outlier_share(sigma_m, outlier_sigma_m))
     return gtsam.BearingFactor3D(pose_key, landmark_key, measured, noise)
+
+
+# The floor frame's yaw and horizontal position against its base: not measured by the floor, held tight.
+FLOOR_FRAME_TIGHT_SIGMA = 1e-3
+
+
+def floor_frame_factor(k: int, tilt_sigma_rad: float, height_sigma_m: float):
+    """Keyframe k's floor frame ``F(k)`` against its base pose ``X(k)``: the same pose, but for a roll and pitch
+    of ``tilt_sigma_rad`` and a height of ``height_sigma_m`` (Pose3 tangent order: rotation x y z, translation
+    x y z); yaw and horizontal position held to ``FLOOR_FRAME_TIGHT_SIGMA``. The floor's information about the
+    keyframe's height is bounded by this sigma however many floor points are tied to ``F(k)``."""
+    sig = np.array([tilt_sigma_rad, tilt_sigma_rad, FLOOR_FRAME_TIGHT_SIGMA, FLOOR_FRAME_TIGHT_SIGMA,
+                    FLOOR_FRAME_TIGHT_SIGMA, height_sigma_m])
+    return gtsam.BetweenFactorPose3(X(k), F(k), gtsam.Pose3(), gtsam.noiseModel.Diagonal.Sigmas(sig))
 
 
 def _outlier_share(sigma_m: float, outlier_sigma_m: float | None) -> float:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 from collections import Counter
 
+import gtsam
 import numpy as np
 
 from ..camera import CameraModel
@@ -26,7 +27,7 @@ from ..geometry import inv_T, make_T
 from ..types import FrontendOutput
 from . import factors as fac
 from .cue_check import CueAgreement, CueCheck
-from .factors import X
+from .factors import F, X
 from .ground import (
     UNTIE_MIN_SIGMA_HEIGHTS,
     FloorAttitude,
@@ -88,6 +89,8 @@ class FloorModel:
         # significant on (sticky), and the wheel calibration's scale is released once at that keyframe.
         self.mount_normal_used = g.mount_calibration is MountCalibration.ON
         self.retie_pending = False  # the window's floor landmarks are re-tied at the next update
+        # ground.floor_state: the keyframes with a floor frame F(k) in the smoother (their floor points tie to it).
+        self.floor_frames: set[int] = set()
         self.floor_normal_learnt = False  # the last update measured its floor points along the learnt normal
         # Metric scale: from the wheels, or (monocular) once the ground plane has fixed the first baseline, or
         # later, when the floor first comes into view (``late_metric_start``).
@@ -265,7 +268,8 @@ class FloorModel:
         Rs = [self.kf_pose[kk][:3, :3] for kk in range(w0, k) if kk in self.kf_pose]
         z_axes = np.array([R[:, 2] for R in Rs]).reshape(-1, 3)
         self.base_rocking_deg = attitude_jitter_deg(z_axes) if len(z_axes) >= MIN_ROCKING_KEYFRAMES else float("nan")
-        if g.rocking_jitter_deg is None or fit is None or not self.base_rocking_deg > g.rocking_jitter_deg:
+        if (g.rocking_jitter_deg is None or fit is None or not self.base_rocking_deg > g.rocking_jitter_deg
+                or g.floor_state):  # a floor frame of its own takes the rocking up
             return None
         if self.n_level_ground_factors == 0:
             log.info("keyframe %d: the base rocks (median tilt change %.2f deg between keyframes): floor points "
@@ -275,6 +279,25 @@ class FloorModel:
         return level_up(floor_normals, T_guess[:3, :3] @ fit.normal, g.level_select_deg)
 
     # ------------------------------------------------------------------ ground factors
+    def floor_pose_key(self, k: int) -> int:
+        """The pose keyframe k's floor points are tied in: its floor frame F(k) (``ground.floor_state``), else
+        its base pose X(k)."""
+        return F(k) if k in self.floor_frames else X(k)
+
+    def add_floor_frame(self, k: int, graph, values, stamps: dict[int, float], owners: list,
+                        T_guess: np.ndarray) -> None:
+        """Keyframe k's floor frame F(k), with its factor to X(k) (``ground.floor_state``; once per keyframe, in
+        the update that first ties floor points at k; stamped as X(k), so both leave the window together)."""
+        g = self.cfg.ground
+        if not g.floor_state or k in self.floor_frames:
+            return
+        values.insert(F(k), gtsam.Pose3(T_guess))
+        stamps[F(k)] = float(k)
+        graph.add(fac.floor_frame_factor(k, float(np.radians(g.floor_tilt_sigma_deg)),
+                                         g.floor_height_fraction * self.camera_height_m))
+        owners.append(None)
+        self.floor_frames.add(k)
+
     def point_sigma_m(self, n_points: int) -> float:
         """The height sigma of each of the ``n_points`` floor points one keyframe ties to its floor.
 
@@ -302,7 +325,7 @@ class FloorModel:
             self.level_frame = True
             return fac.level_ground_factor(X(k), key, up_world, self.floor_z, sigma, cfg, self.ground_sigma_m)
         p_base = (p_world - T_guess[:3, 3]) @ T_guess[:3, :3]
-        return fac.ground_factor(X(k), key, p_base, self.floor_offset(n_base), sigma, cfg, n_base,
+        return fac.ground_factor(self.floor_pose_key(k), key, p_base, self.floor_offset(n_base), sigma, cfg, n_base,
                                  self.ground_sigma_m)
 
     def retie_window_floor(self, k: int, w0: int, graph, owners: list) -> list[int]:
@@ -319,7 +342,7 @@ class FloorModel:
             T = self.kf_pose[kk]
             p_base = (p_world - T[:3, 3]) @ T[:3, :3]
             key = self.lm.landmarks[tid].key
-            graph.add(fac.ground_factor(X(kk), key, p_base, offset, self.point_sigma_m(per_keyframe[kk]), self.cfg,
+            graph.add(fac.ground_factor(self.floor_pose_key(kk), key, p_base, offset, self.point_sigma_m(per_keyframe[kk]), self.cfg,
                                         n_base, self.ground_sigma_m))
             owners.append((tid, kk, True))
             self.lm.drop_factor(tid, kk, fi)
@@ -334,6 +357,7 @@ class FloorModel:
         Only native ground factors (``lm.ground_factor``); the level frame's, on a rocking base, are left alone.
         Measured (docs/performance.md): a loop lined with 3 cm kerbs, wheels +2%: ATE SE(3) 0.041 -> 0.017 m
         (without wheels 0.097 -> 0.023 m); 19 plain loops and figure eights 0.94x-1.31x, geometric mean 1.04."""
+        self.floor_frames = {kk for kk in self.floor_frames if kk >= w0}
         k_sigma = self.cfg.ground.untie_sigmas
         if k_sigma is None:
             return

@@ -107,6 +107,8 @@ class LandmarkFactors:
         new_lms: list[int] = []
         n_vis = n_ground = 0
         n_floor = int(np.count_nonzero(on_floor))  # the floor points keyframe k ties (they share its floor's error)
+        if n_floor and floor_model.ties_allowed():
+            floor_model.add_floor_frame(k, graph, values, stamps, owners, T_guess)
         for (tid, p), floor in zip(born, on_floor):
             new_lms.append(tid)
             if self.smart and not floor:

@@ -414,6 +414,7 @@ class SlidingWindowBackend:
         k = self.k
         self._new_smoother()
         self.lm.restart(k, fo.track_ids, fo.pixels_undistorted, fo.pixel_sigma_scale)
+        self.floor.floor_frames.clear()  # the fresh smoother holds none
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         stamps: dict[int, float] = {}
