@@ -7,7 +7,8 @@ base rocks, ``level_up``; a learnt mount tilt with ``ground.mount_calibration``,
 ``floor_normal_base``), and for the ground factors themselves (``birth_ground_factor``; at the mount switch
 ``retie_window_floor``; off-floor landmarks lose theirs, ``untie_off_floor``). A monocular run takes its metric
 scale from the floor: at its start (``first_baseline``) or when the floor first comes into view
-(``late_metric_start``). The pure geometry (plane fits, attitude, off-floor test) is in ``ground.py``.
+(``late_metric_start``). With ``ground.floor_state`` a keyframe's floor points are tied to a floor frame ``F(k)``
+of its own (``add_floor_frame``, ``floor_pose_key``) instead of its base pose. The pure geometry (plane fits, attitude, off-floor test) is in ``ground.py``.
 
 The model reads the window's landmarks (``LandmarkManager``) and keyframe poses; it never touches the
 smoother: it adds factors to the update the smoother builds and returns factor indices to remove.

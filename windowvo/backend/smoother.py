@@ -462,22 +462,22 @@ class SlidingWindowBackend:
         return {self.kf_frame[kk]: self.kf_pose[kk] for kk in range(self.window_start()) if kk in self.kf_pose}
 
 
-# A keyframe's estimated rotation must be one to this tolerance (|R^T R - I|, max entry); iSAM2's rotations
-# stay orthonormal to ~1e-12, a solve that ran off gives matrices of 1e-226 (measured: a monocular street).
+# A keyframe's estimated rotation must be one to this tolerance (|R^T R - I|, max entry): no run of the scale suite
+# or the benchmark comes near it; a solve that ran off gave 1.7e-6 growing 2.4x a keyframe, then 1e-226 matrices.
 ROTATION_TOLERANCE = 1e-6
 
 
 def diverged_keyframe(estimate: gtsam.Values, keyframes) -> int | None:
-    """The first of ``keyframes`` whose pose in ``estimate`` is not finite or whose rotation is no rotation."""
-    for kk in keyframes:
-        if not estimate.exists(X(kk)):
-            continue
-        T = estimate.atPose3(X(kk)).matrix()
-        R = T[:3, :3]
-        if (not np.all(np.isfinite(T)) or np.abs(R.T @ R - np.eye(3)).max() > ROTATION_TOLERANCE
-                or np.linalg.det(R) <= 0.0):
-            return int(kk)
-    return None
+    """The first of ``keyframes`` whose pose in ``estimate`` is not finite or whose rotation is no rotation
+    (every window pose after every update: checked at once, about 0.05 ms)."""
+    kfs = [int(kk) for kk in keyframes if estimate.exists(X(kk))]
+    if not kfs:
+        return None
+    T = np.stack([estimate.atPose3(X(kk)).matrix() for kk in kfs])
+    R = T[:, :3, :3]
+    err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+    bad = ~np.all(np.isfinite(T), axis=(1, 2)) | ~(err <= ROTATION_TOLERANCE) | ~(np.linalg.det(R) > 0.0)
+    return kfs[int(np.argmax(bad))] if bad.any() else None
 
 
 def keyframe_output(be: SlidingWindowBackend, fo: FrontendOutput, n_new: int, n_vis: int, n_ground: int,
