@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from ..runtime import stop
+from .hidden_modules import pandas_hidden
 
 log = logging.getLogger("windowvo")
 
@@ -69,7 +70,8 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     stop.install()
     try:
-        return _main(argv)
+        with pandas_hidden():  # pyarrow's import of it under rerun: 0.3 s of start-up (cli/hidden_modules.py)
+            return _main(argv)
     except stop.Interrupted as intr:
         return _interrupted(intr.signum)
     except KeyboardInterrupt:  # a signal that came before the handlers (the interpreter starting)
