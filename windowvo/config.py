@@ -276,6 +276,17 @@ class GroundConfig(_Section):
     floor_height_fraction: float = Field(0.015, gt=0, le=0.5, description="floor_state: sigma of the floor frame's "
                                          "height against the base, as a share of the camera height (suspension, "
                                          "tyres, the local surface)")
+    height_sigma_fraction: float | None = Field(
+        None, gt=0, le=0.5, description="how well camera_height_m is known, as a share of it (the suspension's "
+        "load, the tyres, a road's crown: about 0.01-0.03 on a car). With it, the floor's depth below its "
+        "configured height is a state shared by the keyframes (one per block that leaves the window together, a "
+        "slow random walk, height_walk_per_sqrt_m), with this prior sigma, and each keyframe with floor points ties "
+        "them to a floor frame dropped by that depth: the floor's information about the scale is then bounded by "
+        "this sigma however many points it holds, and with wheels the fused scale weighs it against the wheel "
+        "calibration's prior. null: the configured height is exact (each floor point carries its own scale "
+        "information)")
+    height_walk_per_sqrt_m: float = Field(0.001, gt=0, description="height_sigma_fraction: random walk of the "
+                                          "floor's depth per sqrt(metre) driven, as a share of the camera height")
     untie_sigmas: float | None = Field(
         2.5, gt=0, description="after every update the window's tied floor landmarks are judged again: heights "
         "above the floor of the keyframe that tied each, in robust sigmas (1.4826 x MAD, at least 1% of the camera "

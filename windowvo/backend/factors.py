@@ -37,6 +37,7 @@ SMART_RANK_TOLERANCE = 1.0
 # Symbols of the smoother's states (each needs a relinearisation threshold, see relinearize_thresholds).
 POSE_SYMBOL, LANDMARK_SYMBOL, FLOOR_LANDMARK_SYMBOL, CALIBRATION_SYMBOL = "x", "l", "g", "c"
 FLOOR_FRAME_SYMBOL = "f"
+FLOOR_DEPTH_SYMBOL = "d"
 
 
 def X(k: int) -> int:
@@ -60,6 +61,12 @@ def F(k: int) -> int:
     return gtsam.symbol(FLOOR_FRAME_SYMBOL, k)
 
 
+def D(k: int) -> int:
+    """Key of the floor's depth below its configured height from keyframe k on (``ground.height_sigma_fraction``):
+    metres the true floor lies below the one ``camera_height_m`` puts under the base (a double)."""
+    return gtsam.symbol(FLOOR_DEPTH_SYMBOL, k)
+
+
 def C(k: int) -> int:
     """Key of the wheel calibration (scale, yaw bias per metre) at keyframe k."""
     return gtsam.symbol(CALIBRATION_SYMBOL, k)
@@ -81,7 +88,7 @@ def relinearize_thresholds(cfg: BackendConfig) -> float | gtsam.ISAM2ThresholdMa
         return t
     m = gtsam.ISAM2ThresholdMap()
     for sym, dim, value in ((POSE_SYMBOL, 6, t), (CALIBRATION_SYMBOL, 2, t), (FLOOR_LANDMARK_SYMBOL, 3, t),
-                            (FLOOR_FRAME_SYMBOL, 6, t),
+                            (FLOOR_FRAME_SYMBOL, 6, t), (FLOOR_DEPTH_SYMBOL, 1, t),
                             (LANDMARK_SYMBOL, 3, cfg.landmark_relinearize_threshold_m)):
         m.insert((sym, np.full(dim, value)))
     return m
@@ -367,6 +374,44 @@ def floor_frame_factor(k: int, tilt_sigma_rad: float, height_sigma_m: float):
     sig = np.array([tilt_sigma_rad, tilt_sigma_rad, FLOOR_FRAME_TIGHT_SIGMA, FLOOR_FRAME_TIGHT_SIGMA,
                     FLOOR_FRAME_TIGHT_SIGMA, height_sigma_m])
     return gtsam.BetweenFactorPose3(X(k), F(k), gtsam.Pose3(), gtsam.noiseModel.Diagonal.Sigmas(sig))
+
+
+def _floor_depth_error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+    """``Logmap(T_world_base^-1 T_world_floor)`` against a pure drop of ``d`` along the base's z axis."""
+    kx, kf, kd = this.keys()
+    H1 = np.zeros((6, 6), order="F")
+    H2 = np.zeros((6, 6), order="F")
+    Hl = np.zeros((6, 6), order="F")
+    rel = values.atPose3(kx).between(values.atPose3(kf), H1, H2)
+    xi = gtsam.Pose3.Logmap(rel, Hl)
+    err = np.asarray(xi, float).copy()
+    err[5] += values.atDouble(kd)
+    if H is not None:
+        H[0] = Hl @ H1
+        H[1] = Hl @ H2
+        H[2] = np.array([[0.0], [0.0], [0.0], [0.0], [0.0], [1.0]])
+    return err
+
+
+def floor_depth_factor(k: int, depth_key: int):
+    """Keyframe k's floor frame ``F(k)`` is its base pose ``X(k)`` dropped by the floor depth ``d`` (state
+    ``depth_key``, shared by the keyframes of a block) along the base's z axis, held to
+    ``FLOOR_FRAME_TIGHT_SIGMA`` in all six directions: the floor points tied to ``F(k)`` measure the floor at
+    ``camera_height_m + d`` below the camera, so the floor's information about the scale passes through ``d``,
+    whose prior (``floor_depth_prior``) bounds it however many points the floor holds. A Python factor, one per
+    keyframe with floor points (not one per point)."""
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, FLOOR_FRAME_TIGHT_SIGMA)
+    return gtsam.CustomFactor(noise, [X(k), F(k), depth_key], _floor_depth_error)
+
+
+def floor_depth_prior(k: int, depth_m: float, sigma_m: float):
+    """What is known of the floor's depth below its configured height when its chain starts (or restarts)."""
+    return gtsam.PriorFactorDouble(D(k), float(depth_m), gtsam.noiseModel.Isotropic.Sigma(1, sigma_m))
+
+
+def floor_depth_walk(k_prev: int, k: int, sigma_m: float):
+    """The floor's depth drifts slowly along the way (the road's crown, the load on the suspension)."""
+    return gtsam.BetweenFactorDouble(D(k_prev), D(k), 0.0, gtsam.noiseModel.Isotropic.Sigma(1, sigma_m))
 
 
 def _outlier_share(sigma_m: float, outlier_sigma_m: float | None) -> float:

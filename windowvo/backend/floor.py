@@ -29,6 +29,7 @@ from ..types import FrontendOutput
 from . import factors as fac
 from .cue_check import CueAgreement, CueCheck
 from .factors import F, X
+from .floor_depth import FloorDepthStates
 from .ground import (
     UNTIE_MIN_SIGMA_HEIGHTS,
     FloorAttitude,
@@ -92,6 +93,8 @@ class FloorModel:
         self.retie_pending = False  # the window's floor landmarks are re-tied at the next update
         # ground.floor_state: the keyframes with a floor frame F(k) in the smoother (their floor points tie to it).
         self.floor_frames: set[int] = set()
+        # ground.height_sigma_fraction: the floor's depth below its configured height, a state shared by the keyframes.
+        self.depth = FloorDepthStates(cfg, self.camera_height_m)
         self.floor_normal_learnt = False  # the last update measured its floor points along the learnt normal
         # Metric scale: from the wheels, or (monocular) once the ground plane has fixed the first baseline, or
         # later, when the floor first comes into view (``late_metric_start``).
@@ -290,12 +293,19 @@ class FloorModel:
         """Keyframe k's floor frame F(k), with its factor to X(k) (``ground.floor_state``; once per keyframe, in
         the update that first ties floor points at k; stamped as X(k), so both leave the window together)."""
         g = self.cfg.ground
-        if not g.floor_state or k in self.floor_frames:
+        if not (g.floor_state or self.depth.wanted) or k in self.floor_frames:
             return
-        values.insert(F(k), gtsam.Pose3(T_guess))
+        if g.floor_state:
+            values.insert(F(k), gtsam.Pose3(T_guess))
+            graph.add(fac.floor_frame_factor(k, float(np.radians(g.floor_tilt_sigma_deg)),
+                                             g.floor_height_fraction * self.camera_height_m))
+        else:  # ground.height_sigma_fraction: F(k) is X(k) dropped by the shared floor depth
+            n_before = graph.size()
+            depth_key = self.depth.start(graph, values, stamps, k, T_guess)
+            owners.extend([None] * (graph.size() - n_before))
+            values.insert(F(k), gtsam.Pose3(T_guess @ make_T(np.eye(3), np.array([0.0, 0.0, -self.depth.depth_m]))))
+            graph.add(fac.floor_depth_factor(k, depth_key))
         stamps[F(k)] = float(k)
-        graph.add(fac.floor_frame_factor(k, float(np.radians(g.floor_tilt_sigma_deg)),
-                                         g.floor_height_fraction * self.camera_height_m))
         owners.append(None)
         self.floor_frames.add(k)
 
@@ -324,7 +334,8 @@ class FloorModel:
         if up_world is not None:
             self.n_level_ground_factors += 1
             self.level_frame = True
-            return fac.level_ground_factor(X(k), key, up_world, self.floor_z, sigma, cfg, self.ground_sigma_m)
+            pose_key = self.floor_pose_key(k) if self.depth.wanted else X(k)  # floor frames with a tilt: not rocking
+            return fac.level_ground_factor(pose_key, key, up_world, self.floor_z, sigma, cfg, self.ground_sigma_m)
         p_base = (p_world - T_guess[:3, 3]) @ T_guess[:3, :3]
         return fac.ground_factor(self.floor_pose_key(k), key, p_base, self.floor_offset(n_base), sigma, cfg, n_base,
                                  self.ground_sigma_m)

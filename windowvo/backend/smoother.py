@@ -347,6 +347,7 @@ class SlidingWindowBackend:
         values.insert(X(k), gtsam.Pose3(T_guess))
         stamps[X(k)] = float(k)
         self._motion_factors(graph, values, stamps, k, odom, T_guess)
+        self.floor.depth.step(graph, values, stamps, k, T_guess)
         if cfg.planar_prior.enabled and k > 0:
             graph.add(fac.planar_attitude_factor(X(k), cfg))
             if cfg.planar_prior.height_prior:
@@ -391,6 +392,7 @@ class SlidingWindowBackend:
             if est.exists(X(kk)):
                 self.kf_pose[kk] = est.atPose3(X(kk)).matrix()
         self.wheel.read(est)
+        self.floor.depth.read(est)
 
     # ------------------------------------------------------------------ reset
     def _reset_with(self, fo: FrontendOutput, odom, T_guess: np.ndarray) -> None:
@@ -415,6 +417,7 @@ class SlidingWindowBackend:
         self._new_smoother()
         self.lm.restart(k, fo.track_ids, fo.pixels_undistorted, fo.pixel_sigma_scale)
         self.floor.floor_frames.clear()  # the fresh smoother holds none
+        self.floor.depth.reset()
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         stamps: dict[int, float] = {}
