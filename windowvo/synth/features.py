@@ -35,7 +35,7 @@ def sample_landmarks(world: SyntheticWorld, n: int, rng: np.random.Generator) ->
     for i in idx:
         p = planes[i]
         u, v = rng.uniform(0, p.length_u), rng.uniform(0, p.length_v)
-        pts.append(p.origin + u * p.axis_u + v * p.axis_v + 0.01 * p.normal)
+        pts.append(p.origin + u * p.axis_u + v * p.axis_v)
     return np.asarray(pts)
 
 
