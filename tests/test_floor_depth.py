@@ -78,6 +78,7 @@ def test_a_loose_height_lets_exact_wheels_correct_a_wrong_camera_height(exact_wh
     assert be.floor.depth.live and be.floor.floor_frames
     depth_share = be.floor.depth.depth_m / (1.05 * h)
     assert -0.055 < depth_share < -0.04, depth_share
+    assert be.scale_report().floor_depth_m == be.floor.depth.depth_m  # summary.json's floor_depth_m
     assert rep_state.ate_se3_rmse_m < 0.6 * rep_exact.ate_se3_rmse_m
 
 
@@ -87,4 +88,5 @@ def test_a_tight_height_is_the_configured_floor(exact_wheels):
     _, rep_off = run_backend(exact_wheels, _cfg())
     be, rep_tight = run_backend(exact_wheels, _cfg(height_sigma_fraction=1e-4))
     assert abs(be.floor.depth.depth_m) < 1e-3
+    assert run_backend(exact_wheels, _cfg())[0].scale_report().floor_depth_m is None  # not estimated: not reported
     assert rep_tight.ate_se3_rmse_m == pytest.approx(rep_off.ate_se3_rmse_m, rel=0.05, abs=2e-4)

@@ -8,7 +8,8 @@ base rocks, ``level_up``; a learnt mount tilt with ``ground.mount_calibration``,
 ``retie_window_floor``; off-floor landmarks lose theirs, ``untie_off_floor``). A monocular run takes its metric
 scale from the floor: at its start (``first_baseline``) or when the floor first comes into view
 (``late_metric_start``). With ``ground.floor_state`` a keyframe's floor points are tied to a floor frame ``F(k)``
-of its own (``add_floor_frame``, ``floor_pose_key``) instead of its base pose. The pure geometry (plane fits, attitude, off-floor test) is in ``ground.py``.
+of its own (``add_floor_frame``, ``floor_pose_key``) instead of its base pose; with ``ground.height_sigma_fraction``
+that frame is the base pose dropped by the floor's depth, a state shared by the keyframes (``floor_depth.py``). The pure geometry (plane fits, attitude, off-floor test) is in ``ground.py``.
 
 The model reads the window's landmarks (``LandmarkManager``) and keyframe poses; it never touches the
 smoother: it adds factors to the update the smoother builds and returns factor indices to remove.
@@ -290,8 +291,10 @@ class FloorModel:
 
     def add_floor_frame(self, k: int, graph, values, stamps: dict[int, float], owners: list,
                         T_guess: np.ndarray) -> None:
-        """Keyframe k's floor frame F(k), with its factor to X(k) (``ground.floor_state``; once per keyframe, in
-        the update that first ties floor points at k; stamped as X(k), so both leave the window together)."""
+        """Keyframe k's floor frame F(k), with its factor to X(k) (``ground.floor_state``; or, with
+        ``ground.height_sigma_fraction``, X(k) dropped by the shared floor depth, whose chain starts here if it is
+        not live); once per keyframe, in the update that first ties floor points at k; stamped as X(k), so both
+        leave the window together."""
         g = self.cfg.ground
         if not (g.floor_state or self.depth.wanted) or k in self.floor_frames:
             return
@@ -334,7 +337,9 @@ class FloorModel:
         if up_world is not None:
             self.n_level_ground_factors += 1
             self.level_frame = True
-            pose_key = self.floor_pose_key(k) if self.depth.wanted else X(k)  # floor frames with a tilt: not rocking
+            # The shared depth's floor frame is X(k) dropped along its z axis: its floor too. floor_state's frames tilt
+            # against X(k), which the level frame does not measure.
+            pose_key = self.floor_pose_key(k) if self.depth.wanted else X(k)
             return fac.level_ground_factor(pose_key, key, up_world, self.floor_z, sigma, cfg, self.ground_sigma_m)
         p_base = (p_world - T_guess[:3, 3]) @ T_guess[:3, :3]
         return fac.ground_factor(self.floor_pose_key(k), key, p_base, self.floor_offset(n_base), sigma, cfg, n_base,

@@ -34,6 +34,7 @@ class FloorDepthStates:
         self.key = -1  # keyframe index of the live state D(key); -1: the chain has not started (or was reset)
         self.depth_m = 0.0  # its last estimate
         self._at: np.ndarray | None = None  # where the base was when D(key) started (its random walk's distance)
+        self.estimated = False  # the chain has started at least once (depth_m is an estimate)
 
     @property
     def live(self) -> bool:
@@ -49,6 +50,7 @@ class FloorDepthStates:
             stamps[D(k)] = float(k)
             graph.add(fac.floor_depth_prior(k, self.depth_m, self.prior_sigma_m))
             self.key, self._at = k, T_guess[:3, 3].copy()
+            self.estimated = True
         return D(self.key)
 
     def step(self, graph, values, stamps: dict[int, float], k: int, T_guess: np.ndarray) -> None:

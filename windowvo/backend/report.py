@@ -54,6 +54,8 @@ class ScaleReport:
     floor_scale_reanchors: int = 0
     # Ground factors removed from floor landmarks that later turned out to lie off the floor (a kerb beside it).
     floor_untied: int = 0
+    # ground.height_sigma_fraction: the floor's estimated depth below its configured height (m; None: not estimated)
+    floor_depth_m: float | None = None
     n_resets: int = 0  # back-end window resets
 
     @classmethod
@@ -71,5 +73,6 @@ def scale_report(be: SlidingWindowBackend) -> ScaleReport:
         metric_from_frame=None if be.metric_from_keyframe is None else be.kf_frame[be.metric_from_keyframe],
         floor_scale_reanchors=be.n_scale_reanchors,
         floor_untied=be.n_floor_untied,
+        floor_depth_m=be.floor.depth.depth_m if be.floor.depth.estimated else None,
         n_resets=be.n_resets,
     )

@@ -159,6 +159,7 @@ def summary_dict(report: JobReport, cfg: Config) -> dict:
         "metric_from_frame": r.metric_from_frame,
         "floor_scale_reanchors": r.floor_scale_reanchors,
         "floor_untied": r.floor_untied,
+        "floor_depth_m": None if r.floor_depth_m is None else round(r.floor_depth_m, 4),
         "wheel_calibration": None if cal is None else {
             "scale": round(cal.scale, 5), "scale_sigma": round(cal.scale_sigma, 5),
             "yaw_bias_per_m": round(cal.yaw_bias_per_m, 6), "yaw_bias_sigma": round(cal.yaw_bias_sigma, 6)},
@@ -218,6 +219,9 @@ def _floor_line(r: RunResult, summary: dict) -> str | None:
                         "T_base_cam_levelled) or set backend.ground.mount_calibration: auto or on", np.hypot(tx, ty))
         elif significant:
             floor.append("T_base_cam levelled by it in summary.json (T_base_cam_levelled)")
+    if r.floor_depth_m is not None:
+        floor.append(f"estimated {r.floor_depth_m * 100:+.1f} cm below its configured height "
+                     f"(backend.ground.height_sigma_fraction)")
     if r.floor_untied:
         floor.append(f"{r.floor_untied} floor landmarks found off it in later views and untied (a kerb or mat beside "
                      f"it; backend.ground.untie_sigmas)")

@@ -95,6 +95,10 @@ class RunResult:
         return self.scale.floor_untied
 
     @property
+    def floor_depth_m(self) -> float | None:
+        return self.scale.floor_depth_m
+
+    @property
     def n_resets(self) -> int:
         return self.scale.n_resets
 
