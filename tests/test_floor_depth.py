@@ -90,3 +90,14 @@ def test_a_tight_height_is_the_configured_floor(exact_wheels):
     assert abs(be.floor.depth.depth_m) < 1e-3
     assert run_backend(exact_wheels, _cfg())[0].scale_report().floor_depth_m is None  # not estimated: not reported
     assert rep_tight.ate_se3_rmse_m == pytest.approx(rep_off.ate_se3_rmse_m, rel=0.05, abs=2e-4)
+
+
+def test_floor_frames_and_the_depth_state_are_refused_together(tmp_path):
+    """One line at load, not a run that silently takes one of them."""
+    from windowvo.config import ConfigError, load_config
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"sequence: {tmp_path}\noutput: {tmp_path / 'out'}\n")
+    with pytest.raises(ConfigError, match="floor_state and height_sigma_fraction"):
+        load_config(cfg, ["backend.ground.floor_state=true", "backend.ground.height_sigma_fraction=0.02"])
+    load_config(cfg, ["backend.ground.height_sigma_fraction=0.02"])  # either alone loads

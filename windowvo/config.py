@@ -287,6 +287,13 @@ class GroundConfig(_Section):
         "information)")
     height_walk_per_sqrt_m: float = Field(0.001, gt=0, description="height_sigma_fraction: random walk of the "
                                           "floor's depth per sqrt(metre) driven, as a share of the camera height")
+
+    @model_validator(mode="after")
+    def _one_floor_frame(self) -> GroundConfig:
+        if self.floor_state and self.height_sigma_fraction is not None:
+            raise ValueError("backend.ground: floor_state and height_sigma_fraction each give the floor a frame of its "
+                             "own; set one of them")
+        return self
     untie_sigmas: float | None = Field(
         2.5, gt=0, description="after every update the window's tied floor landmarks are judged again: heights "
         "above the floor of the keyframe that tied each, in robust sigmas (1.4826 x MAD, at least 1% of the camera "

@@ -75,6 +75,13 @@ def C(k: int) -> int:
 # ---------------------------------------------------------------------------- iSAM2 settings
 
 
+def block_starts(cfg: BackendConfig, k: int) -> bool:
+    """Keyframe k starts a block of keyframes that leave the window together (``marginalize_every``): a slowly
+    varying state (the wheel calibration ``C``, the floor depth ``D``) takes a new value with each block, not with
+    each keyframe (every extra state joins the dense block of poses iSAM2 re-eliminates at each update)."""
+    return (k + cfg.window_keyframes - 1) % cfg.marginalize_every == 0
+
+
 def relinearize_thresholds(cfg: BackendConfig) -> float | gtsam.ISAM2ThresholdMap:
     """iSAM2's relinearisation threshold, one for all states or one per kind of state.
 

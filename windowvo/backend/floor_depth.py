@@ -28,7 +28,7 @@ class FloorDepthStates:
     def __init__(self, cfg: BackendConfig, camera_height_m: float):
         g = cfg.ground
         self.cfg = cfg
-        self.wanted = g.height_sigma_fraction is not None and not g.floor_state
+        self.wanted = g.height_sigma_fraction is not None  # never with floor_state (the config refuses both)
         self.prior_sigma_m = (g.height_sigma_fraction or 0.0) * camera_height_m
         self.walk_m = g.height_walk_per_sqrt_m * camera_height_m
         self.key = -1  # keyframe index of the live state D(key); -1: the chain has not started (or was reset)
@@ -39,9 +39,6 @@ class FloorDepthStates:
     @property
     def live(self) -> bool:
         return self.key >= 0
-
-    def _block_starts(self, k: int) -> bool:
-        return (k + self.cfg.window_keyframes - 1) % self.cfg.marginalize_every == 0
 
     def start(self, graph, values, stamps: dict[int, float], k: int, T_guess: np.ndarray) -> int:
         """Keyframe k ties floor points: the live state's key, starting the chain (its prior) if it is not live."""
@@ -57,7 +54,7 @@ class FloorDepthStates:
         """Every keyframe once the chain is live: refresh the live state's stamp, or start the block's new state."""
         if not self.live or k == self.key:
             return
-        if not self._block_starts(k):
+        if not fac.block_starts(self.cfg, k):
             stamps[D(self.key)] = float(k)
             return
         assert self._at is not None

@@ -52,7 +52,7 @@ class WheelCalibrationStates:
 
     def block_starts(self, k: int) -> bool:
         """A new calibration state starts with each block of keyframes that leaves the window together."""
-        return (k + self.cfg.window_keyframes - 1) % self.cfg.marginalize_every == 0
+        return fac.block_starts(self.cfg, k)
 
     def state(self, graph, values, stamps: dict[int, float], k: int) -> int:
         """Key of the calibration state keyframe k's wheel step goes through.
