@@ -38,7 +38,7 @@ def _numerical_jacobians(factor, values: gtsam.Values, eps: float = 1e-6) -> lis
     for key in list(factor.keys()):
         dims = 6 if values.exists(key) and key in (X(0), X(1)) else None
         if dims is None:
-            dims = 2 if gtsam.Symbol(key).chr() == ord("c") else 3
+            dims = 3
         cols = []
         for i in range(dims):
             d = np.zeros(dims)
@@ -47,12 +47,9 @@ def _numerical_jacobians(factor, values: gtsam.Values, eps: float = 1e-6) -> lis
             if dims == 6:
                 vp.update(key, values.atPose3(key).retract(d))
                 vm.update(key, values.atPose3(key).retract(-d))
-            elif dims == 3:
+            else:
                 vp.update(key, values.atPoint3(key) + d)
                 vm.update(key, values.atPoint3(key) - d)
-            else:
-                vp.update(key, values.atPoint2(key) + d)
-                vm.update(key, values.atPoint2(key) - d)
             cols.append((factor.unwhitenedError(vp) - factor.unwhitenedError(vm)) / (2 * eps))
         out.append(np.stack(cols, axis=1))
     return out
@@ -64,15 +61,14 @@ def _analytic_jacobians(factor, values: gtsam.Values) -> list[np.ndarray]:
     sigmas = factor.noiseModel().sigmas() if hasattr(factor.noiseModel(), "sigmas") else None
     out, col = [], 0
     for key in list(factor.keys()):
-        d = values.atPose3(key).localCoordinates(values.atPose3(key)).size if gtsam.Symbol(key).chr() == ord("x") else (
-            2 if gtsam.Symbol(key).chr() == ord("c") else 3)
+        d = values.atPose3(key).localCoordinates(values.atPose3(key)).size if gtsam.Symbol(key).chr() == ord("x") else 3
         block = A[:, col:col + d]
         out.append(block * sigmas[:, None] if sigmas is not None else block)
         col += d
     return out
 
 
-def _values(c=(1.02, 0.01)):
+def _values(c=(1.02, 0.01, 1.03)):
     v = gtsam.Values()
     v.insert(X(0), gtsam.Pose3(make_T(rpy_to_R(0.02, -0.03, 0.4), [1.0, 2.0, 0.05])))
     v.insert(X(1), gtsam.Pose3(make_T(rpy_to_R(-0.01, 0.02, 0.7), [1.5, 2.4, 0.02])))
@@ -87,13 +83,16 @@ def test_calibrated_wheel_factor_residual_and_jacobians():
     D = v.atPose3(X(0)).between(v.atPose3(X(1))).matrix()
     yaw = np.arctan2(D[1, 0], D[0, 0])
     dist = float(np.hypot(D[0, 3], D[1, 3]))
-    # Wheels that over-report distance by 2 % and add 0.01 rad of yaw per metre: zero residual at c = (1.02, 0.01).
-    meas = make_T(rpy_to_R(0, 0, yaw + 0.01 * dist), [1.02 * D[0, 3], 1.02 * D[1, 3], 0.0])
+    # Wheels that over-report distance by 2 %, add 0.01 rad of yaw per metre and report 3 % too much turning
+    # (a track width configured 3 % too narrow): zero residual at c = (1.02, 0.01, 1.03).
+    meas = make_T(rpy_to_R(0, 0, 1.03 * yaw + 0.01 * dist), [1.02 * D[0, 3], 1.02 * D[1, 3], 0.0])
     f = next(g for g in fac.odometry_factors(cfg, 1, meas, dist, calib_key=fac.C(1)) if isinstance(g, gtsam.CustomFactor))
     assert np.abs(f.unwhitenedError(v)).max() < 1e-9
-    v_wrong = _values(c=(1.0, 0.0))
+    v_wrong = _values(c=(1.0, 0.0, 1.0))
     err = f.unwhitenedError(v_wrong)
     assert abs(err[1]) > 0.005 and abs(err[0]) > 0.004  # it measures the calibration
+    err_yaw_scale = f.unwhitenedError(_values(c=(1.02, 0.01, 1.0)))
+    assert abs(err_yaw_scale[0]) == pytest.approx(0.03 * abs(yaw), rel=1e-6) and abs(err_yaw_scale[1:]).max() < 1e-9
     for Ha, Hn in zip(_analytic_jacobians(f, v_wrong), _numerical_jacobians(f, v_wrong)):
         assert np.allclose(Ha, Hn, atol=1e-5), (Ha, Hn)
 
@@ -207,15 +206,15 @@ def test_relinearisation_thresholds_cover_every_state_kind(lm_threshold):
     values.insert(X(0), gtsam.Pose3(gtsam.Rot3(), np.array([1.0, 1.0, 1.0])))
     values.insert(fac.L(1), gtsam.Point3(3.0, 2.0, 2.5))
     values.insert(fac.G(2), gtsam.Point3(2.0, -1.0, 0.5))
-    values.insert(fac.C(0), np.array([2.0, 1.0]))
+    values.insert(fac.C(0), np.array([2.0, 1.0, 1.5]))
     graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.1)))
     graph.add(gtsam.PriorFactorPoint3(fac.L(1), gtsam.Point3(1.0, 0.0, 0.5), gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
     graph.add(gtsam.PriorFactorPoint3(fac.G(2), gtsam.Point3(1.5, 0.0, 0.0), gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
-    graph.add(fac.calibration_prior(0, 1.0, 0.0, 0.03, 0.02))
+    graph.add(fac.calibration_prior(0, np.array([1.0, 0.0, 1.0]), np.array([0.03, 0.02, 0.05])))
     isam.update(graph, values)
     for _ in range(3):
         isam.update()  # relinearisation checks over every variable
     est = isam.calculateEstimate()
     assert np.allclose(est.atPoint3(fac.L(1)), [1.0, 0.0, 0.5], atol=1e-6)
     assert np.allclose(est.atPoint3(fac.G(2)), [1.5, 0.0, 0.0], atol=1e-6)
-    assert np.allclose(est.atPoint2(fac.C(0)), [1.0, 0.0], atol=1e-6)
+    assert np.allclose(est.atPoint3(fac.C(0)), [1.0, 0.0, 1.0], atol=1e-6)

@@ -304,9 +304,9 @@ class GroundConfig(_Section):
 
 
 class WheelCalibrationConfig(_Section):
-    """Online wheel calibration: distance scale and yaw bias per metre as slowly varying states."""
+    """Online wheel calibration: distance scale, yaw bias per metre and yaw scale as slowly varying states."""
 
-    enabled: bool = Field(True, description="estimate the wheels' scale and yaw bias in the window, from the first "
+    enabled: bool = Field(True, description="estimate the wheels' scale, yaw bias and yaw scale in the window, from the first "
                           "keyframe whose floor landmarks fix the metric scale")
     initial_scale: float = Field(1.0, gt=0, description="the scale the calibration starts from (a robot's known "
                                  "calibration, e.g. a previous run's summary.json)")
@@ -316,6 +316,12 @@ class WheelCalibrationConfig(_Section):
                                         "initial_yaw_bias_per_m)")
     scale_walk_per_sqrt_m: float = Field(1e-3, gt=0, description="random walk of the scale per sqrt(metre)")
     yaw_bias_walk_per_sqrt_m: float = Field(2e-4, gt=0, description="random walk of the yaw bias per sqrt(metre)")
+    initial_yaw_scale: float = Field(1.0, gt=0, description="the yaw scale it starts from: the wheels' heading change "
+                                     "over the true one (a differential drive whose configured track width is 3% too "
+                                     "narrow reports 1.03)")
+    yaw_scale_prior_sigma: float = Field(0.05, gt=0, description="prior sigma of the yaw scale (around "
+                                         "initial_yaw_scale)")
+    yaw_scale_walk_per_sqrt_m: float = Field(1e-3, gt=0, description="random walk of the yaw scale per sqrt(metre)")
 
 
 class CueCheckConfig(_Section):

@@ -131,6 +131,7 @@ class BackendOutput:
     n_ground_factors: int = 0  # floor landmarks tied to the ground plane at this keyframe
     wheel_scale: float = float("nan")  # online wheel calibration after this keyframe (nan: not estimated)
     wheel_yaw_bias_per_m: float = float("nan")
+    wheel_yaw_scale: float = float("nan")
     # Median change of the base's tilt between consecutive keyframes of the window (deg; nan: not judged
     # yet): how much the chassis rocks. Above ``ground.rocking_jitter_deg`` floor points are measured in a
     # level frame.
@@ -208,20 +209,27 @@ class FrameRecord:
     floor_normal_learnt: bool = False
     cue_disagreement: float = float("nan")  # floor scale / wheel scale - 1 over the latest keyframes (nan: untested)
     cues_agree: bool | None = None  # the chi-square test of floor against wheels (None: not tested)
+    wheel_yaw_scale: float = float("nan")  # online wheel calibration's yaw scale (nan: not estimated)
 
 
 @dataclass
 class WheelCalibration:
-    """Current estimate of the wheels' distance scale and yaw bias (rad per metre)."""
+    """Current estimate of the wheels' distance scale, yaw bias (rad per metre) and yaw scale.
+
+    The wheels are taken to report ``scale`` times the distance driven and ``yaw_scale`` times the heading
+    change plus ``yaw_bias_per_m`` times the distance."""
 
     scale: float = 1.0
     yaw_bias_per_m: float = 0.0
     scale_sigma: float = float("nan")
     yaw_bias_sigma: float = float("nan")
+    yaw_scale: float = 1.0
+    yaw_scale_sigma: float = float("nan")
 
     def correct(self, T_prev_cur: np.ndarray, distance: float) -> np.ndarray:
         """Wheel step with the calibration removed: what the base probably did."""
-        yaw = float(np.arctan2(T_prev_cur[1, 0], T_prev_cur[0, 0])) - self.yaw_bias_per_m * distance
+        yaw_meas = float(np.arctan2(T_prev_cur[1, 0], T_prev_cur[0, 0]))
+        yaw = (yaw_meas - self.yaw_bias_per_m * distance) / max(self.yaw_scale, 1e-3)
         T = make_T(rot_z(yaw), T_prev_cur[:3, 3] / max(self.scale, 1e-3))
         T[2, 3] = 0.0
         return T

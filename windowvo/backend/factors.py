@@ -4,8 +4,8 @@ Pure functions: they take measurements, keys and noise settings and return GTSAM
 they never touch the smoother. Keys: ``X(k)`` is ``T_world_base`` of keyframe k (``Pose3``),
 ``L(id)`` the world position of the landmark of track ``id`` (``Point3``; ``G(id)`` for a floor
 landmark, so that iSAM2 can relinearise the two kinds at their own thresholds,
-:func:`relinearize_thresholds`), ``C(k)`` the wheel calibration from keyframe k on (``Point2``:
-distance scale, yaw bias in rad per metre).
+:func:`relinearize_thresholds`), ``C(k)`` the wheel calibration from keyframe k on (``Point3``:
+distance scale, yaw bias in rad per metre, yaw scale).
 
 Robust losses: GTSAM applies an M-estimator to the norm of the whitened residual, whose
 square is chi-square distributed with the factor's dimension. :func:`robust_threshold` turns a
@@ -94,7 +94,7 @@ def relinearize_thresholds(cfg: BackendConfig) -> float | gtsam.ISAM2ThresholdMa
     if cfg.landmark_relinearize_threshold_m is None:
         return t
     m = gtsam.ISAM2ThresholdMap()
-    for sym, dim, value in ((POSE_SYMBOL, 6, t), (CALIBRATION_SYMBOL, 2, t), (FLOOR_LANDMARK_SYMBOL, 3, t),
+    for sym, dim, value in ((POSE_SYMBOL, 6, t), (CALIBRATION_SYMBOL, 3, t), (FLOOR_LANDMARK_SYMBOL, 3, t),
                             (FLOOR_FRAME_SYMBOL, 6, t), (FLOOR_DEPTH_SYMBOL, 1, t),
                             (LANDMARK_SYMBOL, 3, cfg.landmark_relinearize_threshold_m)):
         m.insert((sym, np.full(dim, value)))
@@ -230,32 +230,33 @@ def _wrap(a: float) -> float:
 
 def _calibrated_wheel_error(meas: np.ndarray, distance: float, this: gtsam.CustomFactor, values: gtsam.Values,
                             H: list | None) -> np.ndarray:
-    """Residual [yaw, x, y] of a wheel step under a calibration c = (scale, yaw bias per metre).
+    """Residual [yaw, x, y] of a wheel step under a calibration c = (scale, yaw bias per metre, yaw scale).
 
     The wheels report a planar step ``meas = (x, y, yaw)`` in the base frame of the earlier
     keyframe. With the motion ``D = X(k-1)^-1 X(k)`` they should report ``scale * (D.x, D.y)``
-    and ``D.yaw + bias * distance``.
+    and ``yaw_scale * D.yaw + bias * distance`` (a differential drive's track width error scales
+    every heading change: it is one systematic error of the steps, not noise of each).
     """
     k0, k1, kc = this.keys()
     H1 = np.zeros((6, 6), order="F")
     H2 = np.zeros((6, 6), order="F")
     D = values.atPose3(k0).between(values.atPose3(k1), H1, H2)
-    c = values.atPoint2(kc)
-    s, b = float(c[0]), float(c[1])
+    c = values.atPoint3(kc)
+    s, b, g = float(c[0]), float(c[1]), float(c[2])
     Dm = D.matrix()
     R, t = Dm[:3, :3], Dm[:3, 3]
     yaw, dyaw_dw = _yaw_and_jacobian(R)
-    err = np.array([_wrap(yaw + b * distance - meas[2]), s * t[0] - meas[0], s * t[1] - meas[1]])
+    err = np.array([_wrap(g * yaw + b * distance - meas[2]), s * t[0] - meas[0], s * t[1] - meas[1]])
     if H is not None:
         # d(residual)/d(local perturbation of D): yaw depends on the rotation part, x and y on the
         # translation part through R (GTSAM's Pose3 tangent is [w, v] with t' = t + R v).
         J_D = np.zeros((3, 6))
-        J_D[0, :3] = dyaw_dw
+        J_D[0, :3] = g * dyaw_dw
         J_D[1, 3:] = s * R[0, :]
         J_D[2, 3:] = s * R[1, :]
         H[0] = J_D @ H1
         H[1] = J_D @ H2
-        H[2] = np.array([[0.0, distance], [t[0], 0.0], [t[1], 0.0]])
+        H[2] = np.array([[0.0, distance, yaw], [t[0], 0.0, 0.0], [t[1], 0.0, 0.0]])
     return err
 
 
@@ -296,10 +297,11 @@ def odometry_factors(cfg: BackendConfig, k: int, T_prev_cur: np.ndarray, distanc
     return out
 
 
-def calibration_prior(k: int, scale: float, yaw_bias: float, scale_sigma: float, yaw_bias_sigma: float):
-    """Prior on the wheel calibration: the initial belief, or what a reset carries over."""
-    return gtsam.PriorFactorPoint2(C(k), np.array([scale, yaw_bias]),
-                                   gtsam.noiseModel.Diagonal.Sigmas(np.array([scale_sigma, yaw_bias_sigma])))
+def calibration_prior(k: int, calib: np.ndarray, sigmas: np.ndarray):
+    """Prior on the wheel calibration (scale, yaw bias per metre, yaw scale) with its three sigmas: the
+    initial belief, or what a reset carries over."""
+    return gtsam.PriorFactorPoint3(C(k), np.asarray(calib, dtype=float),
+                                   gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, dtype=float)))
 
 
 def calibration_random_walk(cfg: BackendConfig, k_prev: int, k: int, distance: float, release_scale: bool = False):
@@ -309,8 +311,8 @@ def calibration_random_walk(cfg: BackendConfig, k_prev: int, k: int, distance: f
     wc = cfg.wheel_calibration
     d = np.sqrt(max(distance, 1e-3))
     s_scale = wc.scale_prior_sigma if release_scale else wc.scale_walk_per_sqrt_m * d
-    sig = np.array([s_scale, wc.yaw_bias_walk_per_sqrt_m * d])
-    return gtsam.BetweenFactorPoint2(C(k_prev), C(k), np.zeros(2), gtsam.noiseModel.Diagonal.Sigmas(sig))
+    sig = np.array([s_scale, wc.yaw_bias_walk_per_sqrt_m * d, wc.yaw_scale_walk_per_sqrt_m * d])
+    return gtsam.BetweenFactorPoint3(C(k_prev), C(k), np.zeros(3), gtsam.noiseModel.Diagonal.Sigmas(sig))
 
 
 def monocular_motion_factor(k: int, T_prev_cur: np.ndarray, first_baseline: bool):

@@ -15,7 +15,7 @@ module owns the window: keys and timestamps, the lag, the iSAM2 update, the esti
 metric start (``FloorModel.late_metric_start`` says when and by how much).
 
 States: ``X(k)`` is ``T_world_base`` of keyframe k, ``L(id)`` the world position of the landmark
-of track ``id`` (``G(id)`` for a floor landmark), ``C(k)`` the wheel calibration (distance scale, yaw bias per metre) from keyframe k on,
+of track ``id`` (``G(id)`` for a floor landmark), ``C(k)`` the wheel calibration (distance scale, yaw bias per metre, yaw scale) from keyframe k on,
 one per block of keyframes that leave the window together.
 The camera enters the projection factors through ``T_base_cam`` (GTSAM's ``body_P_sensor``).
 
@@ -518,4 +518,5 @@ def keyframe_output(be: SlidingWindowBackend, fo: FrontendOutput, n_new: int, n_
         cues_agree=None if floor.last_agreement is None else floor.last_agreement.agree,
         wheel_scale=calib.scale if be.calibrate else float("nan"),
         wheel_yaw_bias_per_m=calib.yaw_bias_per_m if be.calibrate else float("nan"),
+        wheel_yaw_scale=calib.yaw_scale if be.calibrate else float("nan"),
     )

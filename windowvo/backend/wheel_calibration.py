@@ -1,7 +1,7 @@
 """The back end's wheel calibration states ``C(k)``: when they are live, which one a wheel step goes through,
 their prior and random walk, their estimate and marginal sigmas, and what a window reset does to them.
 
-``C(k)`` is the wheel calibration (distance scale, yaw bias per metre) from keyframe k on, one per block of
+``C(k)`` is the wheel calibration (distance scale, yaw bias per metre, yaw scale) from keyframe k on, one per block of
 keyframes that leave the window together (``WheelCalibrationStates.state``). The states start with the first
 floor landmarks (``start_with_floor``): before, nothing but the wheels could fix the scale, so a free wheel
 scale would drift (measured on KITTI, where the road is seldom tracked). The window (``smoother.py``) owns the
@@ -37,7 +37,7 @@ class WheelCalibrationStates:
         self.key = -1  # keyframe index of the live calibration state C(key)
         self.distance_m = 0.0  # driven since C(key) was created (its random walk)
         wc = cfg.wheel_calibration
-        self.calib = WheelCalibration(wc.initial_scale, wc.initial_yaw_bias_per_m)
+        self.calib = WheelCalibration(wc.initial_scale, wc.initial_yaw_bias_per_m, yaw_scale=wc.initial_yaw_scale)
         self._release_scale = False  # the next new state joins with a random walk as wide as the scale's prior
 
     def release_scale(self) -> None:
@@ -48,7 +48,8 @@ class WheelCalibrationStates:
         """Start the online calibration at keyframe k once floor points have been tied at some keyframe."""
         if self.wanted and not self.calibrate and n_ground_keyframes > 0:
             self.calibrate, self.start = True, k
-            log.info("keyframe %d: the floor is in view; wheel scale and yaw bias are now estimated online", k)
+            log.info("keyframe %d: the floor is in view; wheel scale, yaw bias and yaw scale are now estimated online",
+                     k)
 
     def block_starts(self, k: int) -> bool:
         """A new calibration state starts with each block of keyframes that leaves the window together."""
@@ -68,12 +69,10 @@ class WheelCalibrationStates:
         if k != self.start and self.key >= 0 and not self.block_starts(k) and not release:
             stamps[C(self.key)] = float(k)
             return C(self.key)
-        values.insert(C(k), np.array([self.calib.scale, self.calib.yaw_bias_per_m]))
+        values.insert(C(k), self._vector())
         stamps[C(k)] = float(k)
         if k == self.start or self.key < 0:
-            wc = self.cfg.wheel_calibration
-            graph.add(fac.calibration_prior(k, self.calib.scale, self.calib.yaw_bias_per_m,
-                                            wc.scale_prior_sigma, wc.yaw_bias_prior_sigma))
+            graph.add(fac.calibration_prior(k, self._vector(), self._prior_sigmas()))
         else:
             graph.add(fac.calibration_random_walk(self.cfg, self.key, k, self.distance_m, release_scale=release))
         self.key, self.distance_m = k, 0.0
@@ -87,19 +86,27 @@ class WheelCalibrationStates:
             self.distance_m += distance_m
         return calib_key
 
+    def _vector(self) -> np.ndarray:
+        """The calibration as the state's value: (scale, yaw bias per metre, yaw scale)."""
+        return np.array([self.calib.scale, self.calib.yaw_bias_per_m, self.calib.yaw_scale])
+
+    def _prior_sigmas(self, factor: float = 1.0) -> np.ndarray:
+        wc = self.cfg.wheel_calibration
+        return factor * np.array([wc.scale_prior_sigma, wc.yaw_bias_prior_sigma, wc.yaw_scale_prior_sigma])
+
     def read(self, est: gtsam.Values) -> None:
         """Take the live state's estimate."""
         if self.calibrate and est.exists(C(self.key)):
-            c = est.atPoint2(C(self.key))
-            self.calib.scale, self.calib.yaw_bias_per_m = float(c[0]), float(c[1])
+            c = est.atPoint3(C(self.key))
+            self.calib.scale, self.calib.yaw_bias_per_m, self.calib.yaw_scale = float(c[0]), float(c[1]), float(c[2])
 
     def with_sigma(self, smoother, est: gtsam.Values | None) -> WheelCalibration:
         """The newest calibration estimate with its marginal sigmas (computed on request: costs a solve)."""
-        cal = WheelCalibration(self.calib.scale, self.calib.yaw_bias_per_m)
+        cal = WheelCalibration(self.calib.scale, self.calib.yaw_bias_per_m, yaw_scale=self.calib.yaw_scale)
         if self.calibrate and est is not None and est.exists(C(self.key)):
             try:
-                cov = smoother.marginalCovariance(C(self.key))
-                cal.scale_sigma, cal.yaw_bias_sigma = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
+                sig = np.sqrt(np.diag(smoother.marginalCovariance(C(self.key))))
+                cal.scale_sigma, cal.yaw_bias_sigma, cal.yaw_scale_sigma = (float(v) for v in sig)
             except RuntimeError as err:  # pragma: no cover - diagnostics only
                 log.debug("no marginal covariance of the calibration: %s", err)
         return cal
@@ -115,12 +122,9 @@ class WheelCalibrationStates:
         ``RESET_CALIBRATION_SIGMA_FACTOR`` of the prior sigmas."""
         if not self.calibrate:
             return
-        wc = self.cfg.wheel_calibration
-        f = RESET_CALIBRATION_SIGMA_FACTOR
-        values.insert(C(k - 1), np.array([self.calib.scale, self.calib.yaw_bias_per_m]))
+        values.insert(C(k - 1), self._vector())
         stamps[C(k - 1)] = float(k - 1)
-        graph.add(fac.calibration_prior(k - 1, self.calib.scale, self.calib.yaw_bias_per_m,
-                                        f * wc.scale_prior_sigma, f * wc.yaw_bias_prior_sigma))
+        graph.add(fac.calibration_prior(k - 1, self._vector(), self._prior_sigmas(RESET_CALIBRATION_SIGMA_FACTOR)))
         self.key, self.distance_m = k - 1, 0.0
 
     def restart_here(self, graph, values, stamps: dict[int, float], k: int) -> None:

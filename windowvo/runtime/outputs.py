@@ -162,7 +162,8 @@ def summary_dict(report: JobReport, cfg: Config) -> dict:
         "floor_depth_m": None if r.floor_depth_m is None else round(r.floor_depth_m, 4),
         "wheel_calibration": None if cal is None else {
             "scale": round(cal.scale, 5), "scale_sigma": round(cal.scale_sigma, 5),
-            "yaw_bias_per_m": round(cal.yaw_bias_per_m, 6), "yaw_bias_sigma": round(cal.yaw_bias_sigma, 6)},
+            "yaw_bias_per_m": round(cal.yaw_bias_per_m, 6), "yaw_bias_sigma": round(cal.yaw_bias_sigma, 6),
+            "yaw_scale": round(cal.yaw_scale, 5), "yaw_scale_sigma": round(cal.yaw_scale_sigma, 5)},
         "wheel_time_offset": _clock_dict(r.wheel_time_offset),
         "odometry_synthetic": bool(report.sequence.odometry is not None and report.sequence.odometry.synthetic),
         "interrupted": r.interrupted,
@@ -236,7 +237,8 @@ def summary_lines(report: JobReport, summary: dict, out: Path) -> list[str]:
     if r.wheel_calibration is not None:
         c = r.wheel_calibration
         lines.append(f"wheel calibration: scale {c.scale:.4f} ± {c.scale_sigma:.4f}, "
-                     f"yaw bias {c.yaw_bias_per_m * 1000:.2f} ± {c.yaw_bias_sigma * 1000:.2f} mrad/m")
+                     f"yaw bias {c.yaw_bias_per_m * 1000:.2f} ± {c.yaw_bias_sigma * 1000:.2f} mrad/m, "
+                     f"yaw scale {c.yaw_scale:.4f} ± {c.yaw_scale_sigma:.4f}")
     clock = _clock_line(r)
     if clock is not None:
         lines.append(clock)

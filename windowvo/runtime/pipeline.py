@@ -385,6 +385,7 @@ class Pipeline:
             floor_normal_learnt=bo.floor_normal_learnt if bo is not None else False,
             cue_disagreement=round(bo.cue_disagreement, 5) if bo is not None else float("nan"),
             cues_agree=bo.cues_agree if bo is not None else None,
+            wheel_yaw_scale=round(bo.wheel_yaw_scale, 6) if bo is not None else float("nan"),
         )
 
 

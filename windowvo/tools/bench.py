@@ -169,7 +169,8 @@ def _scale_row(r) -> dict:
     return {"metric": r.metric, "scale_sources": list(r.scale_sources),
             "wheel_calibration": None if c is None else {
                 "scale": c.scale, "scale_sigma": c.scale_sigma,
-                "yaw_bias_per_m": c.yaw_bias_per_m, "yaw_bias_sigma": c.yaw_bias_sigma}}
+                "yaw_bias_per_m": c.yaw_bias_per_m, "yaw_bias_sigma": c.yaw_bias_sigma,
+                "yaw_scale": c.yaw_scale, "yaw_scale_sigma": c.yaw_scale_sigma}}
 
 
 def _deep_merge(base: dict, extra: dict) -> dict:
