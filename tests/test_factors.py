@@ -218,3 +218,17 @@ def test_relinearisation_thresholds_cover_every_state_kind(lm_threshold):
     assert np.allclose(est.atPoint3(fac.L(1)), [1.0, 0.0, 0.5], atol=1e-6)
     assert np.allclose(est.atPoint3(fac.G(2)), [1.5, 0.0, 0.0], atol=1e-6)
     assert np.allclose(est.atPoint3(fac.C(0)), [1.0, 0.0, 1.0], atol=1e-6)
+
+
+def test_a_pose_agrees_with_the_wheel_step_within_the_wheel_factors_own_threshold():
+    """The initial guess takes PnP's tilt only from a pose the wheel factor would call an inlier."""
+    cfg = BackendConfig()
+    T_wheels = make_T(rpy_to_R(0.01, -0.01, 0.7), [1.0, 2.0, 0.0])
+    near = T_wheels @ make_T(rpy_to_R(0.02, -0.015, 0.001), [0.002, -0.001, 0.004])  # 1.4 deg of rocking, 2 mm
+    assert fac.agrees_with_wheel_step(cfg, T_wheels, near, 0.3)
+    rolled = T_wheels @ make_T(rpy_to_R(0.28, 0.0, 0.0), [0.0, 0.0, 0.0])  # 16 deg: a wrong PnP
+    assert not fac.agrees_with_wheel_step(cfg, T_wheels, rolled, 0.3)
+    shifted = T_wheels @ make_T(np.eye(3), [0.1, 0.0, 0.0])  # 10 cm off a 0.3 m step
+    assert not fac.agrees_with_wheel_step(cfg, T_wheels, shifted, 0.3)
+    turned = T_wheels @ make_T(rpy_to_R(0.0, 0.0, 0.1), [0.0, 0.0, 0.0])  # 5.7 deg of heading
+    assert not fac.agrees_with_wheel_step(cfg, T_wheels, turned, 0.3)

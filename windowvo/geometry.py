@@ -47,6 +47,16 @@ def extrapolate_T(T_before: np.ndarray, T_last: np.ndarray) -> np.ndarray:
     return T
 
 
+def with_tilt_of(T_planar: np.ndarray, T_tilt: np.ndarray) -> np.ndarray:
+    """``T_planar`` with the roll and pitch of ``T_tilt``: its position and heading (the yaw of its x axis) kept,
+    its rotation that of ``T_tilt`` turned about the world's z axis to that heading."""
+    yaw_planar = float(np.arctan2(T_planar[1, 0], T_planar[0, 0]))
+    yaw_tilt = float(np.arctan2(T_tilt[1, 0], T_tilt[0, 0]))
+    T = np.array(T_planar, dtype=float, copy=True)
+    T[:3, :3] = rot_z(yaw_planar - yaw_tilt) @ T_tilt[:3, :3]
+    return T
+
+
 def rot_x(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=float)

@@ -52,7 +52,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import BackendConfig
 from ..errors import WindowVOError
-from ..geometry import extrapolate_T, inv_T, make_T
+from ..geometry import extrapolate_T, inv_T, make_T, with_tilt_of
 from ..runtime.stage_timer import Laps, Stage, mark_keyframe
 from ..types import (
     BackendOutput,
@@ -252,9 +252,15 @@ class SlidingWindowBackend:
         if k == 0:
             return np.eye(4)
         T_prev = self.kf_pose[k - 1]
-        if odom is not None and self._odometry_usable(odom):
-            return T_prev @ self.wheel.calib.correct(odom.T_prev_cur, odom.distance_m)
         T_pnp = self.lm.pnp_pose(fo.track_ids, fo.pixels_undistorted, self.cfg.pixel_sigma)
+        if odom is not None and self._odometry_usable(odom):
+            # The wheels give the planar step; they cannot see the base's roll and pitch (their step is level in the
+            # previous keyframe's frame), which a rocking base changes between keyframes and vision sees. PnP's tilt
+            # is taken when its pose is one the wheel factor would call an inlier (a wrong PnP is not followed).
+            T_wheels = T_prev @ self.wheel.calib.correct(odom.T_prev_cur, odom.distance_m)
+            if T_pnp is not None and fac.agrees_with_wheel_step(self.cfg, T_wheels, T_pnp, odom.distance_m):
+                return with_tilt_of(T_wheels, T_pnp)
+            return T_wheels
         if T_pnp is not None:
             return T_pnp
         if k == 1 and fo.R_cam_kf_cam is not None and fo.t_dir_kf is not None:
