@@ -225,10 +225,10 @@ def test_a_pose_agrees_with_the_wheel_step_within_the_wheel_factors_own_threshol
     cfg = BackendConfig()
     T_wheels = make_T(rpy_to_R(0.01, -0.01, 0.7), [1.0, 2.0, 0.0])
     near = T_wheels @ make_T(rpy_to_R(0.02, -0.015, 0.001), [0.002, -0.001, 0.004])  # 1.4 deg of rocking, 2 mm
-    assert fac.agrees_with_wheel_step(cfg, T_wheels, near, 0.3)
+    assert fac.agrees_with_wheel_step(cfg, T_wheels, near, 0.3, 0.0)
     rolled = T_wheels @ make_T(rpy_to_R(0.28, 0.0, 0.0), [0.0, 0.0, 0.0])  # 16 deg: a wrong PnP
-    assert not fac.agrees_with_wheel_step(cfg, T_wheels, rolled, 0.3)
+    assert not fac.agrees_with_wheel_step(cfg, T_wheels, rolled, 0.3, 0.0)
     shifted = T_wheels @ make_T(np.eye(3), [0.1, 0.0, 0.0])  # 10 cm off a 0.3 m step
-    assert not fac.agrees_with_wheel_step(cfg, T_wheels, shifted, 0.3)
+    assert not fac.agrees_with_wheel_step(cfg, T_wheels, shifted, 0.3, 0.0)
     turned = T_wheels @ make_T(rpy_to_R(0.0, 0.0, 0.1), [0.0, 0.0, 0.0])  # 5.7 deg of heading
-    assert not fac.agrees_with_wheel_step(cfg, T_wheels, turned, 0.3)
+    assert not fac.agrees_with_wheel_step(cfg, T_wheels, turned, 0.3, 0.0)

@@ -268,14 +268,16 @@ def planar_odometry_sigmas(cfg: BackendConfig, distance: float, yaw: float) -> t
     return s_xy, s_yaw
 
 
-def agrees_with_wheel_step(cfg: BackendConfig, T_wheels: np.ndarray, T_other: np.ndarray, distance: float) -> bool:
-    """Whether a pose ``T_other`` (PnP's, say) is one the wheel factor would take as an inlier of the wheel step that
-    predicts ``T_wheels``: its planar offset (x, y, yaw) within the factor's robust threshold in the step's own sigmas,
-    and its tilt against ``T_wheels`` within that many of the vertical part's roll/pitch sigma."""
+def agrees_with_wheel_step(cfg: BackendConfig, T_wheels: np.ndarray, T_other: np.ndarray, distance: float,
+                           step_yaw: float) -> bool:
+    """Whether a pose ``T_other`` (PnP's, say) is one the wheel factor would take as an inlier of the wheel step
+    (``distance``, turning by ``step_yaw``) that predicts ``T_wheels``: its planar offset (x, y, yaw) within the
+    factor's robust threshold in the step's own sigmas, and its tilt against ``T_wheels`` within that many of the
+    vertical part's roll/pitch sigma."""
     o = cfg.odometry
     D = np.linalg.solve(T_wheels, T_other)
     yaw = float(np.arctan2(D[1, 0], D[0, 0]))
-    s_xy, s_yaw = planar_odometry_sigmas(cfg, distance, yaw)
+    s_xy, s_yaw = planar_odometry_sigmas(cfg, distance, step_yaw)
     k = threshold(o.robust_k, 3, cfg)
     planar = np.array([yaw / s_yaw, D[0, 3] / s_xy, D[1, 3] / s_xy])
     tilt = float(np.arccos(np.clip(T_wheels[:3, 2] @ T_other[:3, 2], -1.0, 1.0)))

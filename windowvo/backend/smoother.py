@@ -258,7 +258,8 @@ class SlidingWindowBackend:
             # previous keyframe's frame), which a rocking base changes between keyframes and vision sees. PnP's tilt
             # is taken when its pose is one the wheel factor would call an inlier (a wrong PnP is not followed).
             T_wheels = T_prev @ self.wheel.calib.correct(odom.T_prev_cur, odom.distance_m)
-            if T_pnp is not None and fac.agrees_with_wheel_step(self.cfg, T_wheels, T_pnp, odom.distance_m):
+            step_yaw = float(np.arctan2(odom.T_prev_cur[1, 0], odom.T_prev_cur[0, 0]))
+            if T_pnp is not None and fac.agrees_with_wheel_step(self.cfg, T_wheels, T_pnp, odom.distance_m, step_yaw):
                 return with_tilt_of(T_wheels, T_pnp)
             return T_wheels
         if T_pnp is not None:
