@@ -79,3 +79,20 @@ def test_a_keyframes_floor_points_share_one_error_when_asked(camera):
         vals.insert(2, gtsam.Point3(2.0, 0.3, off * own))
         gaussian = 0.5 * (off * own / s_wide) ** 2  # the whitened height error, squared, halved
         assert (f_wide.error(vals) < 0.98 * gaussian) is robust, (off, f_wide.error(vals), gaussian)
+
+
+def test_a_far_floor_point_carries_the_floors_tilt_in_its_sigma(camera):
+    """ground.sigma_tilt_deg: a point's height sigma grows with its range by the floor's attitude error against the
+    base (hypot of its own sigma and r tan(tilt)); 0 leaves it as it was, and the robust threshold widens with it."""
+    fixed = _model(camera, sigma_tilt_deg=1.0)
+    own = fixed.ground_sigma_m
+    near, far = np.array([0.5, 0.0, 0.0]), np.array([8.0, 6.0, -0.4])  # 0.5 m and 10 m ahead
+    s_near, o_near = fixed.range_sigmas_m(own, near)
+    s_far, o_far = fixed.range_sigmas_m(own, far)
+    t = np.tan(np.radians(1.0))
+    assert s_near == pytest.approx(np.hypot(own, 0.5 * t))
+    assert s_far == pytest.approx(np.hypot(own, 10.0 * t)) and s_far > 5 * own
+    assert o_far == pytest.approx(s_far) and o_near == pytest.approx(s_near)
+    exact = _model(camera, sigma_tilt_deg=0.0)
+    assert exact.range_sigmas_m(own, far) == (own, own)
+

@@ -224,6 +224,11 @@ class GroundConfig(_Section):
         "height, e.g. 0.015. A keyframe's n floor points then tell its height to sqrt(sigma_height^2 / n + this^2): "
         "the floor's information does not grow with the number of points. null (default: measured better on the "
         "scale suite's rendered floors, docs/scale_suite.md): independent points (n points: sigma / sqrt(n))")
+    sigma_tilt_deg: float = Field(
+        0.0, ge=0, lt=10, description="sigma of the floor's attitude against the base (a camera mount pitched "
+        "against T_base_cam, a road's camber and changes of slope), in degrees: a floor point at range r then has a "
+        "height error r tan(sigma) on top of sigma_height_fraction, so far points tell the scale less than near "
+        "ones (a car's camera: about 1; docs/scale_suite.md). 0 (default): the floor is the base's xy plane exactly")
     robust: RobustKind = Field(RobustKind.HUBER, description="robust loss of the ground factor")
     robust_k: float | None = Field(None, gt=0, description="its threshold in sigmas; default: chi-square quantile, 1-D")
     min_depression_deg: float = Field(8.0, ge=0, lt=90, description="floor candidates lie at least this far below "

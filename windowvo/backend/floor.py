@@ -97,6 +97,8 @@ class FloorModel:
         # ground.height_sigma_fraction: the floor's depth below its configured height, a state shared by the keyframes.
         self.depth = FloorDepthStates(cfg, self.camera_height_m)
         self.floor_normal_learnt = False  # the last update measured its floor points along the learnt normal
+        # How well the floor's attitude against the base is known (ground.sigma_tilt_deg): far points' heights.
+        self.tilt_sigma_rad = float(np.radians(g.sigma_tilt_deg))
         # Metric scale: from the wheels, or (monocular) once the ground plane has fixed the first baseline, or
         # later, when the floor first comes into view (``late_metric_start``).
         self.metric = use_odometry
@@ -333,17 +335,30 @@ class FloorModel:
         ``n_points``: the floor points keyframe k ties (``point_sigma_m``)."""
         cfg = self.cfg
         self.floor_normal_learnt = n_base is not None
-        sigma = self.point_sigma_m(n_points)
+        p_base = (p_world - T_guess[:3, 3]) @ T_guess[:3, :3]
+        sigma, outlier_sigma = self.range_sigmas_m(self.point_sigma_m(n_points), p_base)
         if up_world is not None:
             self.n_level_ground_factors += 1
             self.level_frame = True
             # The shared depth's floor frame is X(k) dropped along its z axis: its floor too. floor_state's frames tilt
             # against X(k), which the level frame does not measure.
             pose_key = self.floor_pose_key(k) if self.depth.wanted else X(k)
-            return fac.level_ground_factor(pose_key, key, up_world, self.floor_z, sigma, cfg, self.ground_sigma_m)
-        p_base = (p_world - T_guess[:3, 3]) @ T_guess[:3, :3]
+            return fac.level_ground_factor(pose_key, key, up_world, self.floor_z, sigma, cfg, outlier_sigma)
         return fac.ground_factor(self.floor_pose_key(k), key, p_base, self.floor_offset(n_base), sigma, cfg, n_base,
-                                 self.ground_sigma_m)
+                                 outlier_sigma)
+
+    def range_sigmas_m(self, sigma_m: float, p_base: np.ndarray) -> tuple[float, float]:
+        """A floor point's height sigma and the sigma its robust threshold is counted in, at its range from the base
+        (``p_base``): ``sigma_m`` and the point's own sigma, each widened by the floor's attitude error against the
+        base (``ground.sigma_tilt_deg``), which moves a point's height by its range times the angle. The floor's
+        tilt under the camera is one error that every point of a keyframe shares, and far points carry more of it:
+        a camera pitched 1 deg on its mount puts a road point 10 m ahead 17 cm off a 1.65 m camera's floor (10%),
+        while the factor without it would weigh that point as if its height were known to 3%."""
+        tilt = np.tan(self.tilt_sigma_rad)
+        if tilt == 0.0:
+            return sigma_m, self.ground_sigma_m
+        e2 = float(p_base[0] ** 2 + p_base[1] ** 2) * tilt * tilt
+        return float(np.sqrt(sigma_m**2 + e2)), float(np.sqrt(self.ground_sigma_m**2 + e2))
 
     def retie_window_floor(self, k: int, w0: int, graph, owners: list) -> list[int]:
         """Tie the window's floor landmarks to the floor along the learnt normal instead of the base z axis
@@ -359,8 +374,9 @@ class FloorModel:
             T = self.kf_pose[kk]
             p_base = (p_world - T[:3, 3]) @ T[:3, :3]
             key = self.lm.landmarks[tid].key
-            graph.add(fac.ground_factor(self.floor_pose_key(kk), key, p_base, offset, self.point_sigma_m(per_keyframe[kk]), self.cfg,
-                                        n_base, self.ground_sigma_m))
+            sigma, outlier_sigma = self.range_sigmas_m(self.point_sigma_m(per_keyframe[kk]), p_base)
+            graph.add(fac.ground_factor(self.floor_pose_key(kk), key, p_base, offset, sigma, self.cfg, n_base,
+                                        outlier_sigma))
             owners.append((tid, kk, True))
             self.lm.drop_factor(tid, kk, fi)
             removed.append(fi)
