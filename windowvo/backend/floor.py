@@ -40,6 +40,7 @@ from .ground import (
     floor_mask,
     level_up,
     off_floor,
+    range_sigmas_m,
 )
 from .landmarks import LandmarkManager, triangulate_midpoint
 
@@ -348,17 +349,8 @@ class FloorModel:
                                  outlier_sigma)
 
     def range_sigmas_m(self, sigma_m: float, p_base: np.ndarray) -> tuple[float, float]:
-        """A floor point's height sigma and the sigma its robust threshold is counted in, at its range from the base
-        (``p_base``): ``sigma_m`` and the point's own sigma, each widened by the floor's attitude error against the
-        base (``ground.sigma_tilt_deg``), which moves a point's height by its range times the angle. The floor's
-        tilt under the camera is one error that every point of a keyframe shares, and far points carry more of it:
-        a camera pitched 1 deg on its mount puts a road point 10 m ahead 17 cm off a 1.65 m camera's floor (10%),
-        while the factor without it would weigh that point as if its height were known to 3%."""
-        tilt = np.tan(self.tilt_sigma_rad)
-        if tilt == 0.0:
-            return sigma_m, self.ground_sigma_m
-        e2 = float(p_base[0] ** 2 + p_base[1] ** 2) * tilt * tilt
-        return float(np.sqrt(sigma_m**2 + e2)), float(np.sqrt(self.ground_sigma_m**2 + e2))
+        """A floor point's sigma and its robust threshold's, widened at its range by ``ground.sigma_tilt_deg``."""
+        return range_sigmas_m(sigma_m, self.ground_sigma_m, p_base, self.tilt_sigma_rad)
 
     def retie_window_floor(self, k: int, w0: int, graph, owners: list) -> list[int]:
         """Tie the window's floor landmarks to the floor along the learnt normal instead of the base z axis
