@@ -167,6 +167,29 @@ def test_landmark_budgets_count_only_landmarks_seen_recently():
     assert lm.budgets(4, seen_since=10) == (10, 4)
 
 
+@pytest.mark.parametrize("budget_keyframes, expected", [(None, (10 - 3, 4 - 2)), (1, (10 - 1, 4 - 1)), (3, (10 - 2, 4 - 1))])
+def test_landmark_budgets_follow_budget_keyframes(budget_keyframes, expected):
+    """``backend.budget_keyframes``: a landmark holds its place in the budgets while one of the last N keyframes
+    saw it (none: the window's keyframes, every landmark here)."""
+    from windowvo.backend.landmark_factors import LandmarkFactors
+    from windowvo.backend.landmarks import LandmarkManager, LandmarkState
+    from windowvo.camera import CameraModel
+
+    cam = CameraModel(width=640, height=480, fx=340.0, fy=340.0, cx=320.0, cy=240.0)
+    cfg = BackendConfig(max_landmarks=10, window_keyframes=20, budget_keyframes=budget_keyframes)
+    cfg.ground.max_landmarks = 4
+    lm = LandmarkManager(cam, cfg)
+    for tid, (last_kf, floor) in enumerate([(3, False), (7, False), (9, False), (2, True), (9, True)]):
+        lm.landmarks[tid] = LandmarkState(key=tid, last_kf=last_kf, on_ground=floor)
+
+    class Floor:
+        use_ground = True
+
+    vision = LandmarkFactors.__new__(LandmarkFactors)
+    vision.cfg, vision.lm, vision.floor = cfg, lm, Floor()
+    assert vision._budgets(10) == expected
+
+
 def test_factor_bookkeeping_knows_the_ground_factor_and_forgets_a_dropped_one():
     """Each landmark remembers its factors' smoother indices (removed with it as an outlier) and which one
     is its native ground factor (re-tied when the mount calibration switches); a dropped factor is
@@ -221,3 +244,36 @@ def test_landmark_positions_come_from_the_last_estimate_and_only_for_live_landma
     lm.read_estimate(est2)
     ids, pts = lm.positions()
     assert ids.tolist() == [4] and np.array_equal(pts, [[0.5, 0.5, 2.0]])
+
+
+@pytest.mark.parametrize("two_view_guess", [True, False])
+def test_a_keyframe_pnp_cannot_place_starts_from_the_two_view_pose(two_view_guess):
+    """``backend.two_view_guess``: without wheels and with no landmark in view (no PnP), the initial guess of
+    keyframe k is keyframe k-1 moved by the front end's relative pose (X_cur = R X_kf + t), its translation scaled
+    to the constant-velocity step's length; with the option off, constant velocity (the last step's turn again)."""
+    from windowvo.camera import CameraModel
+    from windowvo.geometry import extrapolate_T, inv_T
+    from windowvo.types import FrontendOutput
+
+    cam = CameraModel(width=640, height=480, fx=340.0, fy=340.0, cx=320.0, cy=240.0)
+    be = SlidingWindowBackend(cam, BackendConfig(two_view_guess=two_view_guess), use_odometry=False)
+    T0 = np.eye(4)
+    T1 = make_T(rpy_to_R(0.0, 0.0, 0.2), np.array([1.0, 0.1, 0.0]))  # the last step turned by 0.2 rad
+    be.k = 2
+    be.kf_pose[0], be.kf_pose[1] = T0, T1
+    # What the images say since keyframe 1: straight on along the base's x axis, 0.05 rad of yaw to the right.
+    T_kf_cur_base = make_T(rpy_to_R(0.0, 0.0, -0.05), np.array([1.0, 0.0, 0.0]))
+    T_kf_cur_cam = inv_T(cam.T_base_cam) @ T_kf_cur_base @ cam.T_base_cam
+    T_cur_kf = inv_T(T_kf_cur_cam)
+    t = T_cur_kf[:3, 3]
+    fo = FrontendOutput(frame_index=2, timestamp=0.2, track_ids=np.arange(0), pixels=np.zeros((0, 2)),
+                        pixels_undistorted=np.zeros((0, 2)), track_ages=np.zeros(0), outlier_pixels=np.zeros((0, 2)),
+                        R_cam_kf_cam=T_cur_kf[:3, :3], t_dir_kf=3.0 * t / np.linalg.norm(t))
+    T_guess = be._initial_guess(fo, None)
+    T_cv = extrapolate_T(T0, T1)
+    if not two_view_guess:
+        assert np.allclose(T_guess, T_cv)
+        return
+    step = float(np.linalg.norm(T_cv[:3, 3] - T1[:3, 3]))
+    expected = T1 @ make_T(T_kf_cur_base[:3, :3], T_kf_cur_base[:3, 3] * step)
+    assert np.allclose(T_guess, expected, atol=1e-9)

@@ -358,6 +358,10 @@ class BackendConfig(_Section):
                                    "the window then holds window_keyframes to window_keyframes + N - 1 keyframes, "
                                    "and only one update in N pays for a marginalisation (1: every update)")
     max_landmarks: int = Field(150, ge=10, le=5000, description="landmark budget of the window")
+    budget_keyframes: int | None = Field(None, ge=1, le=500, description="a landmark counts against the landmark "
+                                         "budgets while one of the last N keyframes saw it (none: window_keyframes; "
+                                         "1: only landmarks the previous keyframe still saw, so landmarks whose "
+                                         "tracks ended do not block new ones)")
     landmark_model: LandmarkModel = Field(LandmarkModel.EXPLICIT, description="landmarks off the floor: explicit (a "
                                           "point state and robust projection factors each) or smart (GTSAM smart "
                                           "projection factors, no point state; Gaussian pixel noise with the "
@@ -365,6 +369,9 @@ class BackendConfig(_Section):
                                           "outlier_residual_px); floor landmarks stay explicit. Measured less accurate (docs/performance.md)")
     min_landmark_observations: int = Field(3, ge=2, le=20, description="keyframes that must see a track before it is "
                                                                        "triangulated")
+    two_view_guess: bool = Field(False, description="a keyframe without wheels that PnP cannot place (its landmarks out "
+                                 "of view) starts from the front end's two-view rotation and direction at the "
+                                 "constant-velocity step's length (false: constant velocity)")
     extra_iterations: int = Field(0, ge=0, le=10, description="extra iSAM2 updates per keyframe")
     optimizer: Literal["gauss_newton", "dogleg"] = Field("gauss_newton", description="iSAM2 step: gauss_newton or "
                                                                                      "dogleg")
