@@ -361,7 +361,7 @@ class BackendConfig(_Section):
     budget_keyframes: int | None = Field(None, ge=1, le=500, description="a landmark counts against the landmark "
                                          "budgets while one of the last N keyframes saw it (none: window_keyframes; "
                                          "1: only landmarks the previous keyframe still saw, so landmarks whose "
-                                         "tracks ended do not block new ones)")
+                                         "tracks ended do not block new ones; measured in docs/scale_suite.md)")
     landmark_model: LandmarkModel = Field(LandmarkModel.EXPLICIT, description="landmarks off the floor: explicit (a "
                                           "point state and robust projection factors each) or smart (GTSAM smart "
                                           "projection factors, no point state; Gaussian pixel noise with the "
@@ -371,7 +371,8 @@ class BackendConfig(_Section):
                                                                        "triangulated")
     two_view_guess: bool = Field(False, description="a keyframe without wheels that PnP cannot place (its landmarks out "
                                  "of view) starts from the front end's two-view rotation and direction at the "
-                                 "constant-velocity step's length (false: constant velocity)")
+                                 "constant-velocity step's length (false: constant velocity; measured in "
+                                 "docs/scale_suite.md)")
     extra_iterations: int = Field(0, ge=0, le=10, description="extra iSAM2 updates per keyframe")
     optimizer: Literal["gauss_newton", "dogleg"] = Field("gauss_newton", description="iSAM2 step: gauss_newton or "
                                                                                      "dogleg")

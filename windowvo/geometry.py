@@ -47,6 +47,16 @@ def extrapolate_T(T_before: np.ndarray, T_last: np.ndarray) -> np.ndarray:
     return T
 
 
+def two_view_pose(T_world_base_kf: np.ndarray, T_base_cam: np.ndarray, R_cur_kf: np.ndarray, t_dir_cur_kf: np.ndarray,
+                  baseline: float) -> np.ndarray:
+    """T_world_base now from the last keyframe's pose and the two-view relative pose of the cameras
+    (X_cur = R X_kf + t), the translation direction scaled to ``baseline`` (m, or the run's unit before the scale
+    is known)."""
+    t_unit = t_dir_cur_kf / max(float(np.linalg.norm(t_dir_cur_kf)), 1e-9)
+    T_world_cam = T_world_base_kf @ T_base_cam @ inv_T(make_T(R_cur_kf, t_unit * baseline))
+    return T_world_cam @ inv_T(T_base_cam)
+
+
 def with_tilt_of(T_planar: np.ndarray, T_tilt: np.ndarray) -> np.ndarray:
     """``T_planar`` with the roll and pitch of ``T_tilt``: its position and heading (the yaw of its x axis) kept,
     its rotation that of ``T_tilt`` turned about the world's z axis to that heading."""

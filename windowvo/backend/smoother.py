@@ -52,7 +52,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import BackendConfig
 from ..errors import WindowVOError
-from ..geometry import extrapolate_T, inv_T, make_T, with_tilt_of
+from ..geometry import extrapolate_T, inv_T, two_view_pose, with_tilt_of
 from ..runtime.stage_timer import Laps, Stage, mark_keyframe
 from ..types import (
     BackendOutput,
@@ -264,30 +264,22 @@ class SlidingWindowBackend:
             return T_wheels
         if T_pnp is not None:
             return T_pnp
-        two_view = fo.R_cam_kf_cam is not None and fo.t_dir_kf is not None
-        if k == 1 and fo.t_dir_kf is not None and two_view:
+        if k == 1 and fo.R_cam_kf_cam is not None and fo.t_dir_kf is not None:
             # Two-view initialisation: X_cur = R X_kf + t, with a unit baseline, or the metric one the
             # floor gives (camera at its known height).
             t_unit = fo.t_dir_kf / max(np.linalg.norm(fo.t_dir_kf), 1e-9)
-            return self._two_view_pose(fo, self.floor.first_baseline(fo, t_unit) or 1.0)
+            return two_view_pose(T_prev, self.T_base_cam, fo.R_cam_kf_cam, fo.t_dir_kf,
+                                 self.floor.first_baseline(fo, t_unit) or 1.0)
         if k >= 2:  # constant velocity
             T_cv = extrapolate_T(self.kf_pose[k - 2], T_prev)
-            if two_view and self.cfg.two_view_guess:
+            if fo.R_cam_kf_cam is not None and fo.t_dir_kf is not None and self.cfg.two_view_guess:
                 # No PnP (the window's landmarks are out of view): the images' own rotation and direction
                 # since the last keyframe, at the constant-velocity step's length (monocular: nothing else
                 # knows the length), instead of extrapolating the last step's turn.
-                return self._two_view_pose(fo, float(np.linalg.norm(T_cv[:3, 3] - T_prev[:3, 3])))
+                return two_view_pose(T_prev, self.T_base_cam, fo.R_cam_kf_cam, fo.t_dir_kf,
+                                     float(np.linalg.norm(T_cv[:3, 3] - T_prev[:3, 3])))
             return T_cv
         return T_prev.copy()
-
-    def _two_view_pose(self, fo: FrontendOutput, baseline: float) -> np.ndarray:
-        """T_world_base of keyframe k from the front end's relative pose to keyframe k - 1 (X_cur = R X_kf + t),
-        the translation direction scaled to ``baseline`` (m, or the run's unit before the scale is known)."""
-        assert fo.R_cam_kf_cam is not None and fo.t_dir_kf is not None
-        t_unit = fo.t_dir_kf / max(np.linalg.norm(fo.t_dir_kf), 1e-9)
-        T_cur_kf = make_T(fo.R_cam_kf_cam, t_unit * baseline)
-        T_world_cam = self.kf_pose[self.k - 1] @ self.T_base_cam @ inv_T(T_cur_kf)
-        return T_world_cam @ inv_T(self.T_base_cam)
 
     def _motion_factors(self, graph, values, stamps, k: int, odom: OdometryStep | None, T_guess,
                         restart: bool = False) -> None:
