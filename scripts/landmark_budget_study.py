@@ -22,7 +22,6 @@ from windowvo.io.trajectory import Trajectory
 from windowvo.synth.features import FeatureSequence, simulate_features
 from windowvo.synth.generate import SynthSpec, WheelErrorModel
 from windowvo.synth.paths import PathKind
-from windowvo.types import OdometryStep
 
 SEEDS = range(8, 15)
 SETTINGS: dict[str, dict] = {
@@ -42,10 +41,7 @@ def run(fs: FeatureSequence, cfg: BackendConfig) -> tuple[float, float]:
     """ATE SE(3) of the keyframes and |wheel scale - 1| of one back-end run (wheels from the simulation)."""
     be = SlidingWindowBackend(fs.world.camera, cfg, use_odometry=True)
     for i, fo in enumerate(fs.keyframes):
-        odom = None
-        if i > 0:
-            t0, t1 = fs.keyframes[i - 1].timestamp, fo.timestamp
-            odom = OdometryStep(fs.odometry.delta(t0, t1), fs.odometry.distance(t0, t1))
+        odom = fs.odometry_step(i)
         be.add_keyframe(fo, odom)
     ts = np.array([f.timestamp for f in fs.keyframes])
     est = Trajectory(ts, np.stack([be.kf_pose[k] for k in range(len(ts))]))

@@ -18,7 +18,6 @@ from windowvo.eval.metrics import evaluate
 from windowvo.io.trajectory import Trajectory
 from windowvo.synth.generate import SynthSpec, generate_sequence, pixels_spec
 from windowvo.synth.paths import PathKind
-from windowvo.types import OdometryStep
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -112,10 +111,7 @@ def run_backend(fs, cfg: BackendConfig, vision: bool = True, backend_cls=None):
     for i, fo in enumerate(fs.keyframes):
         if not vision:
             fo.vision_ok = False
-        odom = None
-        if i > 0:
-            t0, t1 = fs.keyframes[i - 1].timestamp, fo.timestamp
-            odom = OdometryStep(fs.odometry.delta(t0, t1), fs.odometry.distance(t0, t1))
+        odom = fs.odometry_step(i)
         be.add_keyframe(fo, odom)
         fo.vision_ok = True
     ts = np.array([f.timestamp for f in fs.keyframes])

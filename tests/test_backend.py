@@ -13,7 +13,6 @@ from windowvo.geometry import make_T, rpy_to_R
 from windowvo.synth.features import simulate_features
 from windowvo.synth.generate import SynthSpec, WheelErrorModel, build_world, simulate_wheel_odometry
 from windowvo.synth.paths import PathKind
-from windowvo.types import OdometryStep
 
 
 @pytest.fixture(scope="module")
@@ -52,10 +51,7 @@ def test_old_keyframes_leave_the_window_in_blocks(block):
     be = SlidingWindowBackend(fs.world.camera, cfg, use_odometry=True)
     sizes = []
     for i, fo in enumerate(fs.keyframes):
-        odom = None
-        if i > 0:
-            t0, t1 = fs.keyframes[i - 1].timestamp, fo.timestamp
-            odom = OdometryStep(fs.odometry.delta(t0, t1), fs.odometry.distance(t0, t1))
+        odom = fs.odometry_step(i)
         be.add_keyframe(fo, odom)
         n_poses, _ = _poses_in_smoother(be)
         stamps = [t for k, t in be.smoother.timestamps().items() if chr(gtsam.Symbol(k).chr()) == "x"]

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..geometry import inv_T
 from ..io.odometry import WheelOdometry
-from ..types import FrontendOutput, GateOutcome, KeyframeReason
+from ..types import FrontendOutput, GateOutcome, KeyframeReason, OdometryStep
 from .generate import SyntheticWorld, SynthSpec, build_world, simulate_wheel_odometry
 
 
@@ -25,6 +25,13 @@ class FeatureSequence:
     gt_T_world_base: list[np.ndarray]  # per keyframe
     odometry: WheelOdometry
     p_world_landmarks: np.ndarray
+
+    def odometry_step(self, i: int) -> OdometryStep | None:
+        """The simulated wheels' step from keyframe i - 1 to keyframe i (None for the first keyframe)."""
+        if i == 0:
+            return None
+        t0, t1 = self.keyframes[i - 1].timestamp, self.keyframes[i].timestamp
+        return OdometryStep(self.odometry.delta(t0, t1), self.odometry.distance(t0, t1))
 
 
 def sample_landmarks(world: SyntheticWorld, n: int, rng: np.random.Generator) -> np.ndarray:
