@@ -142,6 +142,32 @@ def test_entities_and_jpeg_images(recorded):
     assert err_other > 3 * err_own, (err_own, err_other)
 
 
+def test_camera_overlays_one_row_per_frame(recorded):
+    """The camera items sent as columns (a few frames per send) give each frame its own row: the tracks are that
+    frame's tracks (as many as the plotted count, one colour each, the radius once), the outliers and the track
+    tails are there on every frame, the last batch included, and the frames' times are the sequence clock."""
+    chunks = recorded.chunks
+    cam = "/world/estimate/base/cam"
+    tracked = {f: int(v[0]) for f, _, v in _rows(chunks, "/plots/counts/tracked", "Scalars:scalars")}
+    pos = _rows(chunks, f"{cam}/tracks", "Points2D:positions")
+    assert [r[0] for r in pos] == list(range(N_FRAMES))
+    assert [len(r[2]) for r in pos] == [tracked[f] for f in range(N_FRAMES)]
+    assert len({tuple(map(tuple, r[2])) for r in pos}) > N_FRAMES // 2  # the tracks move: not one row repeated
+    colors = _rows(chunks, f"{cam}/tracks", "Points2D:colors")
+    assert [len(r[2]) for r in colors] == [len(r[2]) for r in pos]
+    assert {tuple(r[2]) for r in _rows(chunks, f"{cam}/tracks", "Points2D:radii")} == {(2.0,)}
+    assert [r[0] for r in _rows(chunks, f"{cam}/outliers", "Points2D:positions")] == list(range(N_FRAMES))
+    tails = _rows(chunks, f"{cam}/tails", "Arrows2D:vectors")
+    assert [r[0] for r in tails] == list(range(N_FRAMES))
+    assert max(len(r[2]) for r in tails) > 0
+    for ch in chunks:
+        if str(ch.entity_path) == f"{cam}/tracks" and not ch.is_static:
+            rb = ch.to_record_batch()
+            t = np.asarray(rb.column("time").cast(pa.int64()).to_pylist(), float) * 1e-9
+            f = rb.column("frame").to_pylist()
+            assert np.allclose(t, np.asarray(recorded.seq.timestamps)[f], atol=1e-6)
+
+
 def test_frustum_is_the_causal_pose(recorded):
     """The pose drawn at each frame is the causal estimate (what the robot had then), not the smoothed one."""
     trans = _rows(recorded.chunks, "/world/estimate/base", "Transform3D:translation")

@@ -16,7 +16,14 @@ def test_speed_cases_are_the_issue_sequences():
     names = [c.name for c in speed_cases()]
     assert names[:2] == ["loop", "figure_eight_vibration"]
     rendered = [c for c in speed_cases() if c.kind is CaseKind.SYNTH]
-    assert all(c.spec is not None and c.spec["duration_s"] == 30.0 for c in rendered)  # 600 frames at 20 fps
+    vga = [c.spec for c in rendered if c.spec is not None and c.spec.get("width", 640) == 640]
+    assert len(vga) == 2 and all(s["duration_s"] == 30.0 for s in vga)  # 600 frames at 20 fps
+    # KITTI's size and the issue's KITTI length: 160 frames at 10 Hz at road speed, camera 1.65 m up
+    street = [c.spec for c in rendered if c.spec is not None and c.spec.get("width") == 1226]
+    assert len(street) == 1
+    s = street[0]
+    assert (s["height"], s["fx"], s["fps"], s["camera_height_m"]) == (370, 707.0, 10.0, 1.65)
+    assert s["duration_s"] * s["fps"] == 160 and s["speed"] >= 8.0
 
 
 def test_table_ratio_is_chaining_over_windowvo():

@@ -37,6 +37,9 @@ from ..types import FrameRecord
 
 JOURNAL_NAME = "journal.jsonl"
 JOURNAL_VERSION = 1
+# A frame record's fields, in order: its journal line is a flat dict of them (``dataclasses.asdict`` copies
+# recursively: 50 us a record against 4, for a record that holds no container).
+_RECORD_FIELDS = tuple(f.name for f in dataclasses.fields(FrameRecord))
 
 
 class JournalError(WindowVOError):
@@ -62,7 +65,7 @@ class RunJournal:
         self.flush()
 
     def frame(self, record: FrameRecord, T_online: np.ndarray, wheel_m: float | None) -> None:
-        self._pending.append(json.dumps({"frame": dataclasses.asdict(record), "T_online": _flat(T_online),
+        self._pending.append(json.dumps({"frame": {k: getattr(record, k) for k in _RECORD_FIELDS}, "T_online": _flat(T_online),
                                          "wheel_m": wheel_m}))
 
     def keyframe(self, index: int, t: float, T_world_base: np.ndarray) -> None:
