@@ -27,10 +27,12 @@ def test_speed_cases_are_the_issue_sequences():
 
 
 def test_table_ratio_is_chaining_over_windowvo():
-    row = SpeedRow("s", 100, ProcessTime(2.0, 3.0, 0.01), ProcessTime(8.0, 7.5, 0.2), 3)
+    row = SpeedRow("s", 100, ProcessTime(2.0, 3.0, 0.01), ProcessTime(8.0, 7.5, 0.2), 3, [4.5, 3.0, 3.5])
     assert row.ratio == pytest.approx(4.0)
+    assert row.pair_ratio_median == pytest.approx(3.5)
     line = speed_table([row]).splitlines()[-1]
     assert "**4.00x**" in line and "2.0 (50.0) / 3.0" in line and "8.0 (12.5) / 7.5" in line
+    assert "| 3.50x (3.00-4.50) |" in line
 
 
 @pytest.mark.slow
@@ -39,6 +41,7 @@ def test_one_pair_of_whole_processes(tmp_path):
     case = SeqCase("speed_tiny", CaseKind.SYNTH, dict(path=PathKind.LOOP, duration_s=2.0, seed=5))
     row = run_speed_case(case, tmp_path / "cache", tmp_path / "out", repeats=1)
     assert row.frames == 41
+    assert len(row.pair_ratios) == 1 and row.pair_ratios[0] == pytest.approx(row.ratio)  # one pair: the same ratio
     for p in (row.windowvo, row.chaining):
         assert p.wall_s > 0 and p.cpu_s > 0 and math.isfinite(p.ate_se3_m)
     assert row.windowvo.ate_se3_m < 0.05  # windowvo on a clean 2 s loop (about 1.6 m)
