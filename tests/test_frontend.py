@@ -489,3 +489,48 @@ def test_backward_flow_only_for_forward_survivors_keeps_every_result(world):
     ok, got = tr._flow(img0, img1, None)
     assert 0 < want.sum() < len(want)  # some fail, some survive: the test can tell
     assert np.array_equal(ok, want) and np.array_equal(got[ok], p1[want])
+
+
+def _sheened_pair(shift_px: float, ramp_change: float, contrast: float = 8.0) -> tuple[np.ndarray, np.ndarray]:
+    """A faint texture seen twice, shifted right by ``shift_px``, the second time under a brightness ramp that
+    changed by ``ramp_change`` grey levels per pixel (a polished floor's sheen moves with the view)."""
+    rng = np.random.default_rng(4)
+    tex = cv2.GaussianBlur(rng.normal(0.0, 1.0, (260, 300)).astype(np.float32), (0, 0), 2.0)
+    tex = 100.0 + contrast * tex / tex.std()
+    M = np.float32([[1, 0, shift_px], [0, 1, 0]])
+    moved = cv2.warpAffine(tex, M, (300, 260), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    yy, xx = np.mgrid[0:260, 0:300].astype(np.float32)
+    sheen = ramp_change * (xx + 0.5 * yy)
+    return (np.clip(tex, 0, 255).astype(np.uint8), np.clip(moved + sheen, 0, 255).astype(np.uint8))
+
+
+def _median_flow(box: int, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, int]:
+    tr = KLTTracker(FrontendConfig(klt_highpass_px=box))
+    tr.track(a)
+    ids0, p0 = tr.ids.copy(), tr.pts.copy()
+    tr.track(b)
+    keep = np.isin(ids0, tr.ids)
+    return np.median(tr.pts[np.isin(tr.ids, ids0)] - p0[keep], axis=0), int(keep.sum())
+
+
+def test_tracking_on_the_highpassed_image_ignores_a_changing_sheen():
+    """KLT assumes brightness constancy: on a faint texture, a brightness ramp that changes between two frames
+    (0.02 grey levels a pixel) pulls the matches along the texture's gradient and ends some tracks. On the image
+    less its local mean (``klt_highpass_px``) a locally linear change cancels: the same flow as without it."""
+    clean = _sheened_pair(1.3, 0.0)
+    sheen = _sheened_pair(1.3, 0.02)
+    bias, kept = {}, {}
+    for box in (0, 21):
+        flow_clean, n_clean = _median_flow(box, *clean)
+        flow_sheen, kept[box] = _median_flow(box, *sheen)
+        assert n_clean > 150 and abs(flow_clean[0] - 1.3) < 0.06  # both track the clean pair
+        bias[box] = float(np.linalg.norm(flow_sheen - flow_clean))
+    assert bias[0] > 0.04, bias  # the plain image is pulled: the test can tell the two apart
+    assert bias[21] < 0.01, bias
+    assert kept[21] >= kept[0] + 20, kept
+
+
+def test_highpass_box_must_be_wider_than_the_klt_window():
+    with pytest.raises(ValueError, match="klt_highpass_px"):
+        FrontendConfig(klt_highpass_px=9, klt_window_px=9)
+    assert FrontendConfig(klt_highpass_px=0).klt_highpass_px == 0

@@ -104,6 +104,10 @@ class FrontendConfig(_Section):
                                                                "of the cell")
     klt_window_px: int = Field(9, ge=5, le=101, description="KLT window size")
     klt_levels: int = Field(3, ge=0, le=8, description="KLT pyramid levels")
+    klt_highpass_px: int = Field(0, ge=0, le=201, description="track on the image minus its local mean over this "
+                                 "box (px, wider than klt_window_px): KLT then assumes brightness constancy "
+                                 "only up to a locally linear change (a polished floor's view-dependent sheen, "
+                                 "shading); corners are still detected on the image itself. 0: track the image")
     forward_backward_px: float = Field(0.5, gt=0, description="max forward-backward KLT error; tracks above it end")
     klt_max_residual: float = Field(8.0, gt=0, description="max KLT patch residual (mean absolute grey difference); "
                                                            "ends tracks on deforming patches")
@@ -127,6 +131,14 @@ class FrontendConfig(_Section):
                                             "per cell and round, bottom rows first: the floor gets its share), "
                                             "auto (spread without wheel odometry, where the floor is the only "
                                             "scale source; rows otherwise)")
+
+    @model_validator(mode="after")
+    def _highpass_wider_than_window(self) -> FrontendConfig:
+        if 0 < self.klt_highpass_px <= self.klt_window_px:
+            raise ValueError(f"frontend.klt_highpass_px ({self.klt_highpass_px}) must be 0 (off) or wider than "
+                             f"frontend.klt_window_px ({self.klt_window_px}): a box within the KLT window takes the "
+                             "texture it tracks")
+        return self
 
 
 class KeyframeConfig(_Section):

@@ -193,7 +193,7 @@ class KLTTracker(_TrackStore):
     def track(self, image: np.ndarray, mask: np.ndarray | None = None) -> TrackSet:
         self.frame += 1
         lap = Laps()
-        pyr = image  # the Python binding takes images, not prebuilt pyramids (buildOpticalFlowPyramid's tuple)
+        pyr = self._tracking_image(image)  # images: the Python binding takes no prebuilt pyramid
         if self.prev_pyr is not None and len(self.pts):
             ok, p1 = self._flow(self.prev_pyr, pyr, mask)
             self.ids, self.pts, self.ages = self.ids[ok], p1[ok].astype(np.float32), self.ages[ok] + 1
@@ -204,6 +204,17 @@ class KLTTracker(_TrackStore):
         self._hist.add(self.frame, self.ids, self.pts, self.ages)
         lap(Stage.TRACKING)
         return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), n_new)
+
+    def _tracking_image(self, image: np.ndarray) -> np.ndarray:
+        """What KLT tracks: the image, or (``klt_highpass_px``) the image less its local mean, offset to mid-grey.
+        A brightness change that is locally linear (a sheen that moves with the view, shading) cancels in it,
+        so the patches' match is not pulled along its gradient."""
+        b = self.cfg.klt_highpass_px
+        if b <= 1:
+            return image
+        img = image.astype(np.float32)
+        mean = cv2.blur(img, (b, b), borderType=cv2.BORDER_REFLECT)  # in float: a rounded mean would add steps
+        return cv2.addWeighted(img, 1.0, mean, -1.0, 128.0, dtype=cv2.CV_8U)  # rounded, saturated
 
     def _flow(self, prev: np.ndarray, image: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """The live tracks' new pixels (N, 2) and which of them survive the checks (N,) bool.
