@@ -51,3 +51,34 @@ def test_warehouse_fused_beats_the_wheels_alone(tmp_path):
     assert fused <= 0.7 * wheels, (fused, wheels)
     assert fused <= 0.005 * path_m, (fused, path_m)
     assert rep.result.metric
+
+
+@pytest.mark.slow
+def test_polished_floor_tracked_on_the_highpassed_image(tmp_path):
+    """A warehouse loop's polished floor (a sheen that moves with the view) biases KLT on its faint texture, and
+    the floor points then bias the fused scale; ``frontend.klt_highpass_px: 21`` places the matches on the images
+    less their local means. Three seeds (the first three tried), 10 s loops, wheels +1%: fused ATE 0.0296 / 0.0128 /
+    0.0229 m plain against 0.0098 / 0.0150 / 0.0030 m when written (ratios 0.33 / 1.17 / 0.13)."""
+    from windowvo.synth.generate import SynthSpec, WheelErrorModel
+    from windowvo.synth.paths import PathKind
+    from windowvo.synth.scenes import SceneKind
+
+    ratios, highpass = [], []
+    for seed in (211, 212, 213):
+        seq = tmp_path / f"warehouse_{seed}"
+        generate_sequence(seq, SynthSpec.for_scene(SceneKind.WAREHOUSE, path=PathKind.LOOP, seed=seed, duration_s=10.0,
+                                                   wheel=WheelErrorModel(scale_error=0.01, yaw_bias_per_m=0.004)))
+        ate = []
+        for box in (0, 21):
+            cfg = config_from_dict({"sequence": str(seq), "output": str(tmp_path / f"out_{seed}_{box}"),
+                                    "progress": False, "viz": {"rerun": "off"}, "run_mode": "sequential",
+                                    "frontend": {"klt_highpass_px": box}})
+            rep = run_job(cfg)
+            assert rep.accuracy is not None and rep.result.metric
+            ate.append(rep.accuracy.ate_se3_rmse_m)
+        ratios.append(ate[1] / ate[0])
+        highpass.append(ate[1])
+    ratios.sort()
+    highpass.sort()
+    assert ratios[1] <= 0.6, ratios  # the median seed: the sheen's bias is most of the error
+    assert highpass[1] <= 0.015, highpass

@@ -104,10 +104,12 @@ class FrontendConfig(_Section):
                                                                "of the cell")
     klt_window_px: int = Field(9, ge=5, le=101, description="KLT window size")
     klt_levels: int = Field(3, ge=0, le=8, description="KLT pyramid levels")
-    klt_highpass_px: int = Field(0, ge=0, le=201, description="track on the image minus its local mean over this "
-                                 "box (px, wider than klt_window_px): KLT then assumes brightness constancy "
-                                 "only up to a locally linear change (a polished floor's view-dependent sheen, "
-                                 "shading); corners are still detected on the image itself. 0: track the image")
+    klt_highpass_px: int = Field(0, ge=0, le=201, description="place each KLT match (forward and backward, after "
+                                 "the pyramid's search on the images) on the finest level of the images less their "
+                                 "local means over this box (px, wider than klt_window_px): the match then assumes "
+                                 "brightness constancy only up to a locally linear change, such as a polished "
+                                 "floor's sheen that moves with the view (warehouses: 21; docs/scale_suite.md). "
+                                 "0 (default): the images only")
     forward_backward_px: float = Field(0.5, gt=0, description="max forward-backward KLT error; tracks above it end")
     klt_max_residual: float = Field(8.0, gt=0, description="max KLT patch residual (mean absolute grey difference); "
                                                            "ends tracks on deforming patches")

@@ -186,6 +186,7 @@ class KLTTracker(_TrackStore):
     def __init__(self, cfg: FrontendConfig):
         super().__init__(cfg)
         self.prev_pyr: np.ndarray | None = None
+        self.prev_hp: np.ndarray | None = None  # the previous frame less its local mean (klt_highpass_px)
         self.lk_win = (cfg.klt_window_px, cfg.klt_window_px)
         self.lk_crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
         self._base_mask: tuple[tuple[int, int], np.ndarray | None, np.ndarray] | None = None
@@ -193,11 +194,12 @@ class KLTTracker(_TrackStore):
     def track(self, image: np.ndarray, mask: np.ndarray | None = None) -> TrackSet:
         self.frame += 1
         lap = Laps()
-        pyr = self._tracking_image(image)  # images: the Python binding takes no prebuilt pyramid
+        pyr = image  # images: the Python binding takes no prebuilt pyramid
+        hp = self._tracking_image(image) if self.cfg.klt_highpass_px > 1 else None
         if self.prev_pyr is not None and len(self.pts):
-            ok, p1 = self._flow(self.prev_pyr, pyr, mask)
+            ok, p1 = self._flow(self.prev_pyr, pyr, mask, self.prev_hp, hp)
             self.ids, self.pts, self.ages = self.ids[ok], p1[ok].astype(np.float32), self.ages[ok] + 1
-        self.prev_pyr = pyr
+        self.prev_pyr, self.prev_hp = pyr, hp
         lap(Stage.TRACKING)
         n_new = self._detect(image, mask)
         lap(Stage.DETECTION)
@@ -206,17 +208,26 @@ class KLTTracker(_TrackStore):
         return TrackSet(self.ids.copy(), self.pts.copy(), self.ages.copy(), n_new)
 
     def _tracking_image(self, image: np.ndarray) -> np.ndarray:
-        """What KLT tracks: the image, or (``klt_highpass_px``) the image less its local mean, offset to mid-grey.
-        A brightness change that is locally linear (a sheen that moves with the view, shading) cancels in it,
-        so the patches' match is not pulled along its gradient."""
+        """The image less its local mean (``klt_highpass_px`` box), offset to mid-grey, where KLT's matches are
+        placed: a brightness change that is locally linear (a sheen that moves with the view, shading) cancels
+        in it, so the patches' match is not pulled along its gradient."""
         b = self.cfg.klt_highpass_px
-        if b <= 1:
-            return image
-        img = image.astype(np.float32)
-        mean = cv2.blur(img, (b, b), borderType=cv2.BORDER_REFLECT)  # in float: a rounded mean would add steps
-        return cv2.addWeighted(img, 1.0, mean, -1.0, 128.0, dtype=cv2.CV_8U)  # rounded, saturated
+        mean: np.ndarray = cv2.boxFilter(image, cv2.CV_32F, (b, b), borderType=cv2.BORDER_REFLECT)  # float: no steps
+        np.subtract(mean, np.float32(128.0), out=mean)
+        return cv2.subtract(image, mean, dtype=cv2.CV_8U)  # image - mean + 128, rounded and saturated
 
-    def _flow(self, prev: np.ndarray, image: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    def _refine(self, a_hp: np.ndarray, b_hp: np.ndarray, pa: np.ndarray, pb: np.ndarray, st: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The pyramid's matches ``pb`` (of ``pa``) placed again on the finest level of the images less their
+        local means: the coarse levels of a high-passed image keep too little to search with, so the search
+        stays on the images and only the final placement assumes brightness constancy up to a local linear
+        change. Status: both passes'; residual: the refinement's."""
+        pb, st2, err = cv2.calcOpticalFlowPyrLK(a_hp, b_hp, pa, pb.copy(), winSize=self.lk_win, maxLevel=0,
+                                                criteria=self.lk_crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        return pb, st & st2, err
+
+    def _flow(self, prev: np.ndarray, image: np.ndarray, mask: np.ndarray | None, prev_hp: np.ndarray | None = None,
+              image_hp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The live tracks' new pixels (N, 2) and which of them survive the checks (N,) bool.
 
         The backward flow runs only for the tracks the forward flow's own checks (status, residual, border,
@@ -226,6 +237,8 @@ class KLTTracker(_TrackStore):
         p0 = self.pts.reshape(-1, 1, 2)
         lk = dict(winSize=self.lk_win, maxLevel=self.cfg.klt_levels, criteria=self.lk_crit)
         p1, st, err = cv2.calcOpticalFlowPyrLK(prev, image, p0, None, **lk)  # type: ignore[call-overload]
+        if prev_hp is not None and image_hp is not None:
+            p1, st, err = self._refine(prev_hp, image_hp, p0, p1, st)
         p1 = p1.reshape(-1, 2)
         # KLT's residual (mean absolute grey difference of the patch): a patch that
         # deformed (strong perspective change, occlusion) tracks with a bias; end it.
@@ -238,8 +251,11 @@ class KLTTracker(_TrackStore):
         fwd = np.nonzero(ok)[0]
         if fwd.size:
             p0f = p0[fwd]
-            p0b, stb, _ = cv2.calcOpticalFlowPyrLK(image, prev, p1[fwd].reshape(-1, 1, 2), p0f.copy(), **lk,  # type: ignore[call-overload]
+            p1f = p1[fwd].reshape(-1, 1, 2)
+            p0b, stb, _ = cv2.calcOpticalFlowPyrLK(image, prev, p1f, p0f.copy(), **lk,  # type: ignore[call-overload]
                                                    flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+            if prev_hp is not None and image_hp is not None:
+                p0b, stb, _ = self._refine(image_hp, prev_hp, p1f, p0b, stb)
             fb = np.linalg.norm((p0b - p0f).reshape(-1, 2), axis=1)
             ok[fwd] = (stb.ravel() == 1) & (fb < self.cfg.forward_backward_px)
         return ok, p1
