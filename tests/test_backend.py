@@ -180,6 +180,7 @@ def test_landmark_budgets_follow_budget_keyframes(budget_keyframes, expected):
 
     class Floor:
         use_ground = True
+        use_odometry = True  # explicit settings: the same with or without wheels
 
     vision = LandmarkFactors.__new__(LandmarkFactors)
     vision.cfg, vision.lm, vision.floor = cfg, lm, Floor()
@@ -240,6 +241,22 @@ def test_landmark_positions_come_from_the_last_estimate_and_only_for_live_landma
     lm.read_estimate(est2)
     ids, pts = lm.positions()
     assert ids.tolist() == [4] and np.array_equal(pts, [[0.5, 0.5, 2.0]])
+
+
+@pytest.mark.parametrize("use_odometry", [True, False])
+def test_auto_budget_and_two_view_guess_follow_the_wheels(use_odometry):
+    """``budget_keyframes: auto`` and ``two_view_guess: auto`` (the defaults): without wheels the budget counts the
+    landmarks the previous keyframe saw and a keyframe PnP cannot place starts from the two-view pose; with
+    wheels both stay as before (the window's keyframes, constant velocity at a wheel gap)."""
+    cfg = BackendConfig()
+    assert cfg.budget_keyframes == "auto" and cfg.two_view_guess == "auto"
+    assert cfg.budget_lag(use_odometry) == (cfg.window_keyframes if use_odometry else 1)
+    assert cfg.uses_two_view_guess(use_odometry) is (not use_odometry)
+    explicit = BackendConfig(budget_keyframes=3, two_view_guess=False)
+    assert explicit.budget_lag(use_odometry) == 3 and explicit.uses_two_view_guess(use_odometry) is False
+    assert BackendConfig(budget_keyframes=None).budget_lag(use_odometry) == cfg.window_keyframes
+    with pytest.raises(ValueError):
+        BackendConfig(budget_keyframes=0)
 
 
 @pytest.mark.parametrize("two_view_guess", [True, False])

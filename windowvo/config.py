@@ -10,7 +10,7 @@ from __future__ import annotations
 import enum
 import logging
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -372,10 +372,11 @@ class BackendConfig(_Section):
                                    "the window then holds window_keyframes to window_keyframes + N - 1 keyframes, "
                                    "and only one update in N pays for a marginalisation (1: every update)")
     max_landmarks: int = Field(150, ge=10, le=5000, description="landmark budget of the window")
-    budget_keyframes: int | None = Field(None, ge=1, le=500, description="a landmark counts against the landmark "
-                                         "budgets while one of the last N keyframes saw it (none: window_keyframes; "
-                                         "1: only landmarks the previous keyframe still saw, so landmarks whose "
-                                         "tracks ended do not block new ones; measured in docs/scale_suite.md)")
+    budget_keyframes: Annotated[int, Field(ge=1, le=500)] | Literal["auto"] | None = Field(
+        "auto", description="a landmark counts against the landmark budgets while one of the last N keyframes saw it "
+        "(none: window_keyframes; 1: only landmarks the previous keyframe still saw, so landmarks whose tracks ended "
+        "do not block new ones); auto (default): 1 without wheels, where vision carries the motion and more "
+        "landmarks help, none with wheels, where more landmarks let Huber's outliers add up (docs/scale_suite.md)")
     landmark_model: LandmarkModel = Field(LandmarkModel.EXPLICIT, description="landmarks off the floor: explicit (a "
                                           "point state and robust projection factors each) or smart (GTSAM smart "
                                           "projection factors, no point state; Gaussian pixel noise with the "
@@ -383,10 +384,11 @@ class BackendConfig(_Section):
                                           "outlier_residual_px); floor landmarks stay explicit. Measured less accurate (docs/performance.md)")
     min_landmark_observations: int = Field(3, ge=2, le=20, description="keyframes that must see a track before it is "
                                                                        "triangulated")
-    two_view_guess: bool = Field(False, description="a keyframe without wheels that PnP cannot place (its landmarks out "
-                                 "of view) starts from the front end's two-view rotation and direction at the "
-                                 "constant-velocity step's length (false: constant velocity; measured in "
-                                 "docs/scale_suite.md)")
+    two_view_guess: bool | Literal["auto"] = Field(
+        "auto", description="a keyframe without wheels that PnP cannot place (its landmarks out of view) starts from "
+        "the front end's two-view rotation and direction at the constant-velocity step's length (false: constant "
+        "velocity); auto (default): true without wheels, false with wheels (their gaps keep constant velocity) "
+        "(docs/scale_suite.md)")
     extra_iterations: int = Field(0, ge=0, le=10, description="extra iSAM2 updates per keyframe")
     optimizer: Literal["gauss_newton", "dogleg"] = Field("gauss_newton", description="iSAM2 step: gauss_newton or "
                                                                                      "dogleg")
@@ -427,6 +429,17 @@ class BackendConfig(_Section):
                                           "the window restarts after a failure")
     cue_check: CueCheckConfig = Field(CueCheckConfig(), description="floor against wheels: whether the scale each "
                                       "implies agrees, per keyframe; the floor gated off while they disagree")
+
+    def budget_lag(self, use_odometry: bool) -> int:
+        """Keyframes back a landmark holds its place in the budgets (``budget_keyframes`` resolved)."""
+        b = self.budget_keyframes
+        if b == "auto":
+            b = None if use_odometry else 1
+        return self.window_keyframes if b is None else int(b)
+
+    def uses_two_view_guess(self, use_odometry: bool) -> bool:
+        """``two_view_guess`` resolved: auto is on without wheels."""
+        return (not use_odometry) if self.two_view_guess == "auto" else bool(self.two_view_guess)
 
 
 # Addresses ``viz.rerun: connect`` accepts: rerun[+http|+https]://HOST[:PORT]/proxy.

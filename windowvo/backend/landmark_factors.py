@@ -177,5 +177,5 @@ class LandmarkFactors:
         to leave do not take new ones' places. A monocular run still waiting for the floor
         (``FloorModel.waiting_for_floor``) keeps the floor's budget for tracks below the horizon, so the
         floor, once in view, is in the window."""
-        lag = self.cfg.window_keyframes if self.cfg.budget_keyframes is None else self.cfg.budget_keyframes
+        lag = self.cfg.budget_lag(self.floor.use_odometry)
         return self.lm.budgets(self.cfg.ground.max_landmarks if self.floor.use_ground else 0, k - lag)

@@ -272,7 +272,7 @@ class SlidingWindowBackend:
                                  self.floor.first_baseline(fo, t_unit) or 1.0)
         if k >= 2:  # constant velocity
             T_cv = extrapolate_T(self.kf_pose[k - 2], T_prev)
-            if fo.R_cam_kf_cam is not None and fo.t_dir_kf is not None and self.cfg.two_view_guess:
+            if fo.R_cam_kf_cam is not None and fo.t_dir_kf is not None and self.cfg.uses_two_view_guess(self.use_odometry):
                 # No PnP (the window's landmarks are out of view): the images' own rotation and direction
                 # since the last keyframe, at the constant-velocity step's length (monocular: nothing else
                 # knows the length), instead of extrapolating the last step's turn.
