@@ -61,6 +61,8 @@ def _type_text(annotation) -> str:
         text = " or ".join(_type_text(a) for a in parts)
         return f"{text} or none" if len(parts) < len(_args(annotation)) else text
     origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:  # a constrained type (``Annotated[int, Field(ge=1)]``): its base type
+        return _type_text(_args(annotation)[0])
     if origin is typing.Literal:
         return "one of " + ", ".join(f"`{v}`" for v in _args(annotation))
     if origin is list:
