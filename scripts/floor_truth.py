@@ -21,6 +21,7 @@ from windowvo.backend import floor as floor_model
 from windowvo.backend import landmarks, smoother
 from windowvo.backend.ground import floor_candidates
 from windowvo.config import load_config
+from windowvo.errors import WindowVOError
 from windowvo.runtime.job import run_job
 
 BACKENDS: list = []
@@ -110,4 +111,11 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    if len(sys.argv) < 2:
+        print("usage: python scripts/floor_truth.py CONFIG.yaml [dotted.key=value ...]", file=sys.stderr)
+        sys.exit(2)
+    try:
+        sys.exit(main(sys.argv[1:]))
+    except (WindowVOError, OSError) as err:  # a bad config, a sequence without groundtruth.txt: one line
+        print(f"floor_truth: error: {err}", file=sys.stderr)
+        sys.exit(2)

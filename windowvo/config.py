@@ -430,6 +430,14 @@ class BackendConfig(_Section):
     cue_check: CueCheckConfig = Field(CueCheckConfig(), description="floor against wheels: whether the scale each "
                                       "implies agrees, per keyframe; the floor gated off while they disagree")
 
+    @field_validator("budget_keyframes", mode="before")
+    @classmethod
+    def _budget_keyframes_one_message(cls, v):
+        """One message for a wrong value (the union's members would each report their own)."""
+        if v is None or v == "auto" or (isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 500):
+            return v
+        raise ValueError(f"must be auto, null or a whole number of keyframes from 1 to 500, not {v!r}")
+
     def budget_lag(self, use_odometry: bool) -> int:
         """Keyframes back a landmark holds its place in the budgets (``budget_keyframes`` resolved)."""
         b = self.budget_keyframes

@@ -181,7 +181,8 @@ class _TrackStore:
 
 
 class KLTTracker(_TrackStore):
-    """Shi-Tomasi corners on a grid, tracked with pyramidal Lucas-Kanade and a forward-backward check."""
+    """Shi-Tomasi corners on a grid, tracked with pyramidal Lucas-Kanade and a forward-backward check; with
+    ``frontend.klt_highpass_px`` each match is placed again on the images less their local means (``_refine``)."""
 
     def __init__(self, cfg: FrontendConfig):
         super().__init__(cfg)
@@ -195,7 +196,7 @@ class KLTTracker(_TrackStore):
         self.frame += 1
         lap = Laps()
         pyr = image  # images: the Python binding takes no prebuilt pyramid
-        hp = self._tracking_image(image) if self.cfg.klt_highpass_px > 1 else None
+        hp = self._tracking_image(image) if self.cfg.klt_highpass_px > 0 else None
         if self.prev_pyr is not None and len(self.pts):
             ok, p1 = self._flow(self.prev_pyr, pyr, mask, self.prev_hp, hp)
             self.ids, self.pts, self.ages = self.ids[ok], p1[ok].astype(np.float32), self.ages[ok] + 1
@@ -237,7 +238,7 @@ class KLTTracker(_TrackStore):
         p0 = self.pts.reshape(-1, 1, 2)
         lk = dict(winSize=self.lk_win, maxLevel=self.cfg.klt_levels, criteria=self.lk_crit)
         p1, st, err = cv2.calcOpticalFlowPyrLK(prev, image, p0, None, **lk)  # type: ignore[call-overload]
-        if prev_hp is not None and image_hp is not None:
+        if prev_hp is not None and image_hp is not None:  # klt_highpass_px
             p1, st, err = self._refine(prev_hp, image_hp, p0, p1, st)
         p1 = p1.reshape(-1, 2)
         # KLT's residual (mean absolute grey difference of the patch): a patch that
