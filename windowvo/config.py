@@ -224,6 +224,34 @@ class PlanarPriorConfig(_Section):
     height_sigma_m: float = Field(0.5, gt=0, description="sigma of the height prior")
 
 
+class RoadRegionConfig(_Section):
+    """The floor measured by region (backend/road_region.py): each keyframe step's length from the floor's pixels."""
+
+    enabled: bool = Field(False, description="measure each keyframe step's length by aligning the floor region of "
+                          "the two keyframes' images through the floor's homography (the estimate's rotation and "
+                          "direction, the camera height), tied as a range factor between their poses; for floors "
+                          "with few corners (a road, a plain warehouse floor). Off by default (docs/scale_suite.md)")
+    near_heights: float = Field(2.0, gt=0, description="the region's near edge ahead of the camera, in camera heights")
+    far_heights: float = Field(6.0, gt=0, description="its far edge, in camera heights")
+    half_width_heights: float = Field(1.0, gt=0, description="its half width beside the optical axis, in camera "
+                                      "heights")
+    step_px: int = Field(2, ge=1, le=16, description="the region's pixels are sampled every this many pixels")
+    max_pixels: int = Field(6000, ge=100, description="at most this many sampled pixels (an even subsample)")
+    min_pixels: int = Field(300, ge=20, description="a step is measured only with at least this many region pixels "
+                            "in both images")
+    min_flow_px: float = Field(2.0, ge=0, description="... and when the step moves the region's pixels this far "
+                               "(median; shorter steps do not tell their length)")
+    min_correlation: float = Field(0.5, gt=-1, lt=1, description="... and the best alignment correlates this well "
+                                   "(zero-mean normalised cross-correlation)")
+    search_direction_deg: float = Field(1.5, ge=0, lt=20, description="the step's direction is searched within this "
+                                        "many degrees sideways of the estimate's, alternately with its length, so that "
+                                        "the length does not take up the direction's error (0: the estimate's)")
+    sigma_fraction: float = Field(0.03, gt=0, description="sigma of a measured step's length, as a share of it")
+    robust_k: float | None = Field(None, gt=0, description="threshold of the range factor's robust loss (the "
+                                   "ground factors' kind) in sigmas; default: the 1-D chi-square quantile of "
+                                   "backend.robust_confidence")
+
+
 class GroundConfig(_Section):
     """Ground-plane scale cue: floor landmarks tied to the floor at the camera's known height."""
 
@@ -320,6 +348,16 @@ class GroundConfig(_Section):
         "more: a surface just above the floor, kerbs, pavements, mats, that the plane fit took for it), those beyond "
         "it on either side lose their ground factors and keep their projections. Level-frame ground factors (a "
         "rocking base) are not judged. null: never")
+    road_region: RoadRegionConfig = Field(RoadRegionConfig(), description="the floor measured by region: each "
+                                          "keyframe step's length from the floor's pixels (off by default)")
+
+    @model_validator(mode="after")
+    def _road_region_ahead(self):
+        r = self.road_region
+        if r.far_heights <= r.near_heights:
+            raise ValueError(f"road_region.far_heights ({r.far_heights}) must be beyond near_heights "
+                             f"({r.near_heights})")
+        return self
 
 
 class WheelCalibrationConfig(_Section):

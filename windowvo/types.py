@@ -84,6 +84,8 @@ class FrontendOutput:
     # (N,) how much 1 px of image noise is stretched in pixels_undistorted at each track (largest
     # singular value of the undistortion Jacobian; 1 for a pinhole). None: not computed (all 1).
     pixel_sigma_scale: np.ndarray | None = None
+    # The keyframe's grey image, for the back end's floor region (``backend.ground.road_region``); None: not sent.
+    image: np.ndarray | None = None
 
 
 @dataclass
@@ -147,6 +149,8 @@ class BackendOutput:
     # keyframes (nan: not tested), and whether the chi-square test found them agreeing (None: not tested).
     cue_disagreement: float = float("nan")
     cues_agree: bool | None = None
+    # ground.road_region: this keyframe's step length measured by the floor's region over the estimate's (nan: none).
+    road_step_ratio: float = float("nan")
     # Keyframes before the window whose poses this update changed (frame index -> T_world_base): every one at a
     # monocular run's late metric start, when the floor first came into view and the trajectory was rescaled.
     earlier_keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)
@@ -210,6 +214,7 @@ class FrameRecord:
     cue_disagreement: float = float("nan")  # floor scale / wheel scale - 1 over the latest keyframes (nan: untested)
     cues_agree: bool | None = None  # the chi-square test of floor against wheels (None: not tested)
     wheel_yaw_scale: float = float("nan")  # online wheel calibration's yaw scale (nan: not estimated)
+    road_step_ratio: float = float("nan")  # the step's length by the floor's region over the estimate's (nan: none)
 
 
 @dataclass

@@ -142,13 +142,15 @@ class FloorModel:
         tested and agree (``CueCheck.floor_gated``)."""
         return not self.waiting_for_floor() and not (self.cues is not None and self.cues.floor_gated())
 
-    def check_cues(self, k: int, wheel_m: float | None, estimate_m: float) -> None:
+    def check_cues(self, k: int, wheel_m: float | None, estimate_m: float, road_height_m: float | None = None) -> None:
         """Keyframe k's test of floor against wheels (``cue_check.py``), after its update; says when a
-        disagreement starts and ends."""
+        disagreement starts and ends. ``road_height_m``: the camera height the floor's region implies in the
+        estimate (``ground.road_region``), the floor's measurement at a keyframe without a fitted plane."""
         if self.cues is None or not self.ground_active():
             return
         was_gated = self.cues.floor_gated()
-        self.last_agreement = a = self.cues.observe(k, wheel_m, estimate_m, self.fit_height_m)
+        height = self.fit_height_m if self.fit_height_m is not None else road_height_m
+        self.last_agreement = a = self.cues.observe(k, wheel_m, estimate_m, height)
         if a is None:
             return
         if not a.agree and self.cues.disagree_since == k:

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from ..types import WheelCalibration
+from ..types import ScaleSource, WheelCalibration
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..camera import CameraModel
@@ -62,6 +62,20 @@ class ScaleReport:
     def lost(cls, metric: bool) -> ScaleReport:
         """A run aborted at once in pipelined mode: what the worker knew about the scale is lost."""
         return cls(metric=metric)
+
+
+def scale_sources(be: SlidingWindowBackend) -> list[ScaleSource]:
+    """What fixes the metric scale of a back end's run: the wheels, and the floor once it has ground factors (or the
+    floor region's range factors) in the smoother. A monocular run that is metric owes it to the floor alone (its
+    first baseline, or its late metric start), whether or not a ground factor followed (a run ending right after the
+    floor came into view has none)."""
+    out = []
+    if be.use_odometry:
+        out.append(ScaleSource.WHEELS_CALIBRATED if be.calibrate else ScaleSource.WHEELS)
+    floor_made_metric = be.metric and not be.use_odometry
+    if be.use_ground and (be.n_ground_factors > 0 or be.road.n_factors > 0 or floor_made_metric):
+        out.append(ScaleSource.GROUND_PLANE)
+    return out
 
 
 def scale_report(be: SlidingWindowBackend) -> ScaleReport:

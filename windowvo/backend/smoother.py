@@ -68,7 +68,8 @@ from .factors import C, L, X
 from .floor import FloorModel
 from .landmark_factors import LandmarkFactors
 from .landmarks import LandmarkManager, reprojection_errors, reprojection_rms
-from .report import ScaleReport, scale_report
+from .report import ScaleReport, scale_report, scale_sources
+from .road_region import RoadRegion
 from .wheel_calibration import WheelCalibrationStates
 
 log = logging.getLogger(__name__)
@@ -96,6 +97,7 @@ class SlidingWindowBackend:
         self.wheel = WheelCalibrationStates(cfg, use_odometry)
         self.floor = FloorModel(camera, cfg, use_odometry, self.lm, self.kf_pose)
         self.vision = LandmarkFactors(camera, cfg, self.lm, self.floor, self.kf_pose, self.K, self.body_P_sensor)
+        self.road = RoadRegion(camera, cfg, self.floor, self.kf_pose)  # ground.road_region (does nothing when off)
         self._estimate: gtsam.Values | None = None
         self.n_resets = 0
         self._new_smoother()
@@ -185,17 +187,7 @@ class SlidingWindowBackend:
         return scale_report(self)
 
     def scale_sources(self) -> list[ScaleSource]:
-        """What fixes the metric scale of this run: the wheels, and the floor once it has ground factors in the
-        smoother. A monocular run that is metric owes it to the floor alone (its first baseline, or its late
-        metric start), whether or not a ground factor followed (a run ending right after the floor came into
-        view has none)."""
-        out = []
-        if self.use_odometry:
-            out.append(ScaleSource.WHEELS_CALIBRATED if self.calibrate else ScaleSource.WHEELS)
-        floor_made_metric = self.metric and not self.use_odometry
-        if self.use_ground and (self.n_ground_factors > 0 or floor_made_metric):
-            out.append(ScaleSource.GROUND_PLANE)
-        return out
+        return scale_sources(self)  # report.py says what fixes the scale
 
     def calibration_with_sigma(self) -> WheelCalibration:
         """The newest calibration estimate with its marginal sigmas (computed on request: costs a solve)."""
@@ -234,6 +226,7 @@ class SlidingWindowBackend:
             log.warning("keyframe %d (frame %d): smoother failed (%s); resetting the window from the last good pose",
                         k, fo.frame_index, msg)
             self._reset_with(fo, odom, T_guess)
+            self.road.forget()
             status = BackendStatus.RECOVERED
             lap(Stage.BACKEND_ISAM2)  # a fresh smoother from the last good pose
         out = keyframe_output(self, fo, n_new, n_vis, n_ground, status)
@@ -305,7 +298,7 @@ class SlidingWindowBackend:
         factors, ground factors)."""
         k = self.k
         lap = Laps()
-        self.wheel.start_with_floor(k, self.floor.n_ground_keyframes)
+        self.wheel.start_with_floor(k, self.floor.n_ground_keyframes + self.road.n_factors)
         if self.floor.judge_mount(k, self.calibrate):
             self.wheel.release_scale()
         lap(Stage.BACKEND_FLOOR)
@@ -314,6 +307,7 @@ class SlidingWindowBackend:
         stamps: dict[int, float] = {}
         self.floor.begin_update()
         self._pose_factors(graph, values, stamps, odom, T_guess)
+        self.road.add_factor(graph, self.window_start(k))
         # Outlier landmarks flagged after the previous update: remove their factors; the key stays
         # alive with its birth prior until it is marginalised.
         remove = self.lm.take_removals()
@@ -339,9 +333,10 @@ class SlidingWindowBackend:
         self.floor.count_ground_factors(n_ground)
         self._refresh_states()
         lap(Stage.BACKEND_ESTIMATE)
+        road_height = self.road.after_update(k, fo.image)
         if k > 0:
             step = np.linalg.norm(self.kf_pose[k][:3, 3] - self.kf_pose[k - 1][:3, 3])
-            self.floor.check_cues(k, odom.distance_m if self._odometry_usable(odom) else None, float(step))
+            self.floor.check_cues(k, odom.distance_m if self._odometry_usable(odom) else None, float(step), road_height)
         lap(Stage.BACKEND_FLOOR)
         self.lm.prune(w0)
         lap(Stage.BACKEND_ESTIMATE)
@@ -528,6 +523,7 @@ def keyframe_output(be: SlidingWindowBackend, fo: FrontendOutput, n_new: int, n_
         floor_normal_learnt=floor.floor_normal_learnt,
         cue_disagreement=float("nan") if floor.last_agreement is None else floor.last_agreement.disagreement,
         cues_agree=None if floor.last_agreement is None else floor.last_agreement.agree,
+        road_step_ratio=be.road.ratio,
         wheel_scale=calib.scale if be.calibrate else float("nan"),
         wheel_yaw_bias_per_m=calib.yaw_bias_per_m if be.calibrate else float("nan"),
         wheel_yaw_scale=calib.yaw_scale if be.calibrate else float("nan"),

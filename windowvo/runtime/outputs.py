@@ -62,14 +62,18 @@ def write_stats(path: Path, records: list[FrameRecord]) -> None:
 
 
 def floor_summary(records: list[FrameRecord], T_base_cam: np.ndarray | None = None) -> dict:
-    """What the run learnt about the floor: how much the base rocked (median over keyframes of
+    """What the run learnt about the floor: the keyframe steps the floor's region measured (``ground.road_region``)
+    and the median of the measured step over the estimate's, how much the base rocked (median over keyframes of
     ``base_rocking_deg``, None when never judged), at how many keyframes floor points were tied to the floor in
     a level frame because of it, the floor's tilt in the base frame at the end (None: too few floor fits), at how
     many keyframes the learnt normal was used, and ``T_base_cam`` corrected by that tilt (when given)."""
     rocking = [rec.base_rocking_deg for rec in records if rec.is_keyframe and np.isfinite(rec.base_rocking_deg)]
     tilts = [(rec.floor_tilt_x_deg, rec.floor_tilt_y_deg, rec.floor_tilt_se_deg) for rec in records
              if rec.is_keyframe and np.isfinite(rec.floor_tilt_x_deg)]
-    return {"base_rocking_deg_median": round(float(np.median(rocking)), 4) if rocking else None,
+    road = [rec.road_step_ratio for rec in records if rec.is_keyframe and np.isfinite(rec.road_step_ratio)]
+    return {"road_region_steps": len(road),
+            "road_region_ratio_median": round(float(np.median(road)), 5) if road else None,
+            "base_rocking_deg_median": round(float(np.median(rocking)), 4) if rocking else None,
             "level_frame_keyframes": sum(1 for rec in records if rec.level_frame),
             "floor_tilt_deg": None if not tilts else [round(float(v), 3) for v in tilts[-1][:2]],
             "floor_tilt_se_deg": None if not tilts else round(float(tilts[-1][2]), 3),
@@ -203,6 +207,9 @@ def _scale_line(r: RunResult, summary: dict) -> str:
 
 def _floor_line(r: RunResult, summary: dict) -> str | None:
     floor = []
+    if summary["road_region_steps"]:
+        floor.append(f"its region measured {summary['road_region_steps']} keyframe steps (median "
+                     f"{summary['road_region_ratio_median']:.3f} of the estimate's step; backend.ground.road_region)")
     if summary["base_rocking_deg_median"] is not None:
         floor.append(f"base rocking {summary['base_rocking_deg_median']:.2f} deg between keyframes (level frame at "
                      f"{summary['level_frame_keyframes']} keyframes)")

@@ -386,6 +386,7 @@ class Pipeline:
             cue_disagreement=round(bo.cue_disagreement, 5) if bo is not None else float("nan"),
             cues_agree=bo.cues_agree if bo is not None else None,
             wheel_yaw_scale=round(bo.wheel_yaw_scale, 6) if bo is not None else float("nan"),
+            road_step_ratio=round(bo.road_step_ratio, 5) if bo is not None else float("nan"),
         )
 
 

@@ -198,6 +198,8 @@ class Odometry:
         fo = self.frontend.process(Frame(idx, float(t), image, mask), self._odom_since_kf(t), force_keyframe=is_last)
         odom, note = None, ""
         if fo.is_keyframe:
+            if self.cfg.backend.ground.road_region.enabled:
+                fo.image = image
             self._observe_clock(fo, float(t))
             self._update_offset(float(t))
             odom = self._odom_step(self.last_kf_time, t) if self.last_kf_time is not None else None

@@ -1,0 +1,362 @@
+"""The floor measured by region: the length of a keyframe step from the floor's pixels (``ground.road_region``).
+
+Corner-based floor landmarks need corners on the floor that live three keyframes; the asphalt in front of a car
+(or a plain warehouse floor) has few. The floor's pixels tell the step's length anyway: between keyframes k-1 and
+k, a floor point seen by camera k-1 at ray ``x`` is seen by camera k at ``(R + s t_dir n^T) x`` (the
+plane-induced homography in normalised coordinates: ``X_k = R X_{k-1} + t``, the floor ``n . X = h`` in camera
+k-1 with ``n`` its unit normal pointing down and ``h`` the camera's height above it, ``s = |t| / h``). With the
+rotation ``R`` and the direction ``t_dir`` from the window's estimate, only ``s`` is unknown: the ``s`` whose warp of
+the floor region of image k-1 into image k correlates best (zero-mean normalised cross-correlation, so a change of
+exposure does not matter) gives the step's metric length ``s h`` (Song & Chandraker, CVPR 2014, reduced to the one
+unknown the estimate leaves; ``scripts/road_homography_study.py`` measured the building block on the KITTI
+excerpts). The back end ties it to the keyframes' base poses with a range factor (``range_factor``).
+
+What the measurement assumes, and so what its sigma says: the region is floor (a car parked in it, a kerb beside
+it: the correlation drops, the robust loss and the correlation threshold take it out), and the floor's attitude
+against the camera is known. The last one is its bias: the region's rays meet the floor at grazing angles, so a
+tilt error ``da`` moves ``s`` by about ``da / tan(depression)`` (9% a degree with a car's camera looking 6-10 m ahead).
+The normal is the floor's learnt one (``FloorAttitude``: a mount pitched against ``T_base_cam``) when known, else the
+set-up's, tilted by the estimate's own roll and pitch of the base (a rocking base). A step's sigma is
+``sigma_fraction`` of its length.
+
+Pure numpy and OpenCV (no GTSAM but in ``range_factor``): tested on its own (``tests/test_road_region.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..camera import CameraModel
+from ..config import BackendConfig, RoadRegionConfig
+
+# The search: a coarse grid of this many scales over +-COARSE_SPAN (log) around the estimate's step, then a parabola
+# through the best one and its neighbours, refined once on a grid of FINE_STEPS over +-FINE_SPAN.
+COARSE_STEPS = 29
+COARSE_SPAN = 0.35
+FINE_STEPS = 9
+FINE_SPAN = 0.03
+REFINE_ROUNDS = 3  # rounds of the alternating search (direction, length), each on a third of the span
+BLUR_SIGMA_PX = 1.0  # the images are smoothed before sampling (the warp's linear interpolation then behaves)
+
+
+@dataclass(frozen=True)
+class RoadStep:
+    """One keyframe step measured by the floor's region: its length between the cameras and between the bases."""
+
+    keyframe: int  # the step k-1 -> k
+    camera_m: float  # the cameras' distance, s h
+    base_m: float  # the base origins' distance (what the range factor ties)
+    estimate_camera_m: float  # the estimate's camera distance when measured
+    correlation: float  # at the best scale
+    n_pixels: int
+
+
+def floor_in_camera(T_base_cam: np.ndarray, n_base: np.ndarray, floor_offset: float) -> tuple[np.ndarray, float]:
+    """The floor ``n_base . p = floor_offset`` (base frame, ``n_base`` up) as ``n . X = h`` in the camera frame,
+    ``n`` pointing down: returns ``(n, h)``."""
+    R_bc, t_bc = T_base_cam[:3, :3], T_base_cam[:3, 3]
+    n_cam = -(R_bc.T @ n_base)
+    h = float(n_base @ t_bc - floor_offset)
+    return n_cam / np.linalg.norm(n_cam), h
+
+
+def pixel_grid(camera: CameraModel, step_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``step_px``-th pixel of the image (as measured) and its unit ray: computed once per camera."""
+    s = step_px
+    v, u = np.mgrid[s // 2:camera.height:s, s // 2:camera.width:s]
+    uv = np.stack([u.ravel(), v.ravel()], axis=1)
+    return uv, camera.unproject(uv.astype(float))
+
+
+def region_rays(grid: tuple[np.ndarray, np.ndarray], n_cam: np.ndarray, h: float, cfg: RoadRegionConfig
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels of ``grid`` (``pixel_grid``) whose rays meet the floor within the region ahead (``near_heights``
+    to ``far_heights`` camera heights along the optical axis, ``half_width_heights`` beside it), and those rays
+    scaled to meet the floor: ``(uv (N, 2) int, X (N, 3))``, X on the plane ``n . X = h``."""
+    uv, rays = grid
+    ny = rays @ n_cam
+    ok = ny > 1e-6
+    lam = np.where(ok, h / np.where(ok, ny, 1.0), 0.0)
+    X = rays * lam[:, None]
+    ok &= (X[:, 2] >= cfg.near_heights * h) & (X[:, 2] <= cfg.far_heights * h)
+    ok &= np.abs(X[:, 0]) <= cfg.half_width_heights * h
+    uv, X = uv[ok], X[ok]
+    if len(uv) > cfg.max_pixels:  # an even subsample
+        keep = np.linspace(0, len(uv) - 1, cfg.max_pixels).round().astype(int)
+        uv, X = uv[keep], X[keep]
+    return uv, X
+
+
+def smoothed(image: np.ndarray) -> np.ndarray:
+    """The float image the measurement samples."""
+    return cv2.GaussianBlur(image.astype(np.float32), (0, 0), BLUR_SIGMA_PX)
+
+
+def _zncc(a: np.ndarray, b: np.ndarray) -> float:
+    a = a - a.mean()
+    b = b - b.mean()
+    den = float(np.sqrt((a * a).sum() * (b * b).sum()))
+    return float((a * b).sum()) / den if den > 1e-9 else -1.0
+
+
+class _Warp:
+    """The correlation of the floor region of image k-1 with image k warped by the floor's homography, per s."""
+
+    def __init__(self, camera: CameraModel, img0: np.ndarray, img1: np.ndarray, uv0: np.ndarray, X0: np.ndarray,
+                 R: np.ndarray, t_dir: np.ndarray, n_cam: np.ndarray, h: float, min_pixels: int):
+        self.camera, self.img1 = camera, img1
+        self.pinhole = not camera.has_distortion
+        self.a = img0[uv0[:, 1], uv0[:, 0]].astype(np.float32)
+        self.RX = (X0 @ R.T).astype(np.float32)  # (R X) for each floor point, camera k
+        self.nX = (X0 @ n_cam).astype(np.float32)  # n . X for each point (h on the floor)
+        self.set_direction(t_dir)
+        self.n_last = 0
+        self.min_pixels = min_pixels
+        self.bounds = (1.0, camera.width - 2.0, 1.0, camera.height - 2.0)
+
+    def set_direction(self, t_dir: np.ndarray) -> None:
+        self.tn = np.outer(self.nX, t_dir).astype(np.float32)  # t_dir (n . X) per point: s times it is the translation
+
+    def pixels(self, s: float) -> tuple[np.ndarray, np.ndarray]:
+        Xk = self.RX + np.float32(s) * self.tn  # R X + s t_dir (n . X), and n . X = h: R X + t
+        front = Xk[:, 2] > 1e-6
+        if self.pinhole:
+            c = self.camera
+            z = np.where(front, Xk[:, 2], np.float32(1.0))
+            uv = np.stack([c.fx * Xk[:, 0] / z + c.cx, c.fy * Xk[:, 1] / z + c.cy], axis=1).astype(np.float32)
+            uv[~front] = -1.0
+            return uv, front
+        uv = np.full((len(Xk), 2), -1.0, np.float32)
+        uv[front] = self.camera.project(Xk[front].astype(np.float64))
+        return uv, front
+
+    def correlation(self, s: float) -> tuple[float, int]:
+        uv, front = self.pixels(s)
+        u0, u1, v0, v1 = self.bounds
+        inside = front & (uv[:, 0] >= u0) & (uv[:, 0] <= u1) & (uv[:, 1] >= v0) & (uv[:, 1] <= v1)
+        n = self.n_last = int(inside.sum())
+        if n < self.min_pixels:
+            return -1.0, n
+        m = uv[inside]
+        b = cv2.remap(self.img1, m[:, 0].reshape(1, -1), m[:, 1].reshape(1, -1), cv2.INTER_LINEAR).ravel()
+        return _zncc(self.a[inside], b), n
+
+    def flow_px(self, s: float) -> float:
+        """Median displacement of the region's pixels between s = 0 (rotation only) and s."""
+        uv0, f0 = self.pixels(0.0)
+        uv1, f1 = self.pixels(s)
+        ok = f0 & f1
+        return float(np.median(np.linalg.norm(uv1[ok] - uv0[ok], axis=1))) if ok.any() else 0.0
+
+
+def _parabola_peak(xs: np.ndarray, cs: np.ndarray, i: int) -> float:
+    """The vertex of the parabola through the best grid point and its two neighbours (the grid point at an edge)."""
+    if i == 0 or i == len(xs) - 1:
+        return float(xs[i])
+    c0, c1, c2 = cs[i - 1], cs[i], cs[i + 1]
+    den = c0 - 2 * c1 + c2
+    if den >= 0:
+        return float(xs[i])
+    off = 0.5 * (c0 - c2) / den
+    return float(xs[i] + off * (xs[i + 1] - xs[i]))
+
+
+def _rot_y(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_world_cam0: np.ndarray,
+                 T_world_cam1: np.ndarray, n_cam: np.ndarray, h: float, cfg: RoadRegionConfig,
+                 grid: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float, int] | None:
+    """The camera step's metric length from the floor region (``img0``/``img1``: ``smoothed`` images of the two
+    keyframes; the poses give the rotation and the direction).
+
+    The estimate's direction is not exact, and a sideways error of it shifts the floor's pixels sideways by an
+    amount that grows with the length: a road's lane lines make that costly, so a shorter step would win (10% on a
+    curve for a direction 0.6 deg off). The direction's sideways angle is searched too (``search_direction_deg``),
+    alternately with the length: it moves the pixels across the image, the length along their rays, so the two
+    separate. Returns ``(length m, correlation, pixels)``, or None when the floor region does not measure it: too
+    few pixels, too little motion of the floor in the image, the correlation below ``min_correlation``, or the
+    length's peak at the edge of its search."""
+    T_c1_c0 = np.linalg.inv(T_world_cam1) @ T_world_cam0
+    R, t = T_c1_c0[:3, :3], T_c1_c0[:3, 3]
+    d_est = float(np.linalg.norm(t))
+    if d_est < 1e-6 or h <= 0:
+        return None
+    uv0, X0 = region_rays(grid if grid is not None else pixel_grid(camera, cfg.step_px), n_cam, h, cfg)
+    if len(uv0) < cfg.min_pixels:
+        return None
+    t_dir = t / d_est
+    warp = _Warp(camera, img0, img1, uv0, X0, R, t_dir, n_cam, h, cfg.min_pixels)
+    s_est = d_est / h
+    if warp.flow_px(s_est) < cfg.min_flow_px:
+        return None
+    return _search(warp, t_dir, s_est, h, cfg)
+
+
+def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig
+            ) -> tuple[float, float, int] | None:
+    """``measure_step``'s search: a coarse grid of the length around the estimate's, then rounds of the direction's
+    sideways angle and the length, each on a third of the last span."""
+    # p = [log s, sideways turn of the direction]
+    p = np.array([np.log(s_est), 0.0])
+
+    beta = [0.0]  # the sideways turn the warp's direction has now
+
+    def corr(q: np.ndarray) -> float:
+        if q[1] != beta[0]:
+            warp.set_direction(_rot_y(float(q[1])) @ t_dir)
+            beta[0] = float(q[1])
+        return warp.correlation(float(np.exp(q[0])))[0]
+
+    def line(axis: int, span: float, steps: int) -> tuple[float, bool]:
+        xs = p[axis] + np.linspace(-span, span, steps)
+        cs = []
+        for x in xs:
+            q = p.copy()
+            q[axis] = x
+            cs.append(corr(q))
+        c = np.asarray(cs)
+        i = int(np.argmax(c))
+        p[axis] = _parabola_peak(xs, c, i)
+        return float(c[i]), 0 < i < steps - 1
+
+    c, inside = line(0, COARSE_SPAN, COARSE_STEPS)
+    if not inside or c < cfg.min_correlation:
+        return None
+    span_dir, span_s = float(np.radians(cfg.search_direction_deg)), 3 * FINE_SPAN
+    for _ in range(REFINE_ROUNDS if span_dir > 0 else 1):
+        if span_dir > 0:
+            line(1, span_dir, FINE_STEPS)
+            span_dir /= 3.0
+        c, inside = line(0, span_s, FINE_STEPS)
+        span_s /= 3.0
+    c_best = corr(p)
+    if not inside or c_best < cfg.min_correlation:
+        return None
+    return float(np.exp(p[0])) * h, c_best, warp.n_last
+
+
+def base_distance(T_base_cam: np.ndarray, T_world_cam0: np.ndarray, T_world_cam1: np.ndarray,
+                  camera_m: float) -> float:
+    """The base origins' distance of a step whose cameras are ``camera_m`` apart, in the direction and with the
+    rotation of the estimate's step (the camera sits off the base origin: on a turn the two paths differ)."""
+    T_c0_c1 = np.linalg.inv(T_world_cam0) @ T_world_cam1
+    d = float(np.linalg.norm(T_c0_c1[:3, 3]))
+    T = T_c0_c1.copy()
+    T[:3, 3] *= camera_m / max(d, 1e-12)
+    T_b0_b1 = T_base_cam @ T @ np.linalg.inv(T_base_cam)
+    return float(np.linalg.norm(T_b0_b1[:3, 3]))
+
+
+def range_factor(key0: int, key1: int, base_m: float, sigma_m: float, robust_kind, robust_k: float):
+    """The step's length as a range factor between the two base poses (GTSAM's native ``RangeFactorPose3``)."""
+    import gtsam
+
+    from .factors import robust
+
+    noise = robust(gtsam.noiseModel.Isotropic.Sigma(1, sigma_m), robust_kind, robust_k)
+    return gtsam.RangeFactorPose3(key0, key1, float(base_m), noise)
+
+
+class RoadRegionCue:
+    """The back end's side: keeps the last keyframe's image, measures each step once the window has estimated it,
+    and hands its range factor to the next update (both poses are still in the window then)."""
+
+    def __init__(self, camera: CameraModel, cfg: RoadRegionConfig, T_base_cam: np.ndarray):
+        self.camera, self.cfg, self.T_base_cam = camera, cfg, T_base_cam
+        self.grid = pixel_grid(camera, cfg.step_px)
+        self._image: tuple[int, np.ndarray] | None = None  # (keyframe, smoothed image) of the newest keyframe
+        self._previous: tuple[int, np.ndarray] | None = None  # the one before it
+        self.pending: RoadStep | None = None  # measured, its factor not yet in the smoother
+        self.steps: list[RoadStep] = []  # every step measured
+        self.n_tried = 0
+
+    def keep_image(self, k: int, image: np.ndarray | None) -> None:
+        """Keyframe k's image (grey, as measured); None: no image (the step is not measured)."""
+        self._previous = self._image
+        self._image = None if image is None else (k, smoothed(image))
+
+    def measure(self, k: int, T_world_base0: np.ndarray, T_world_base1: np.ndarray, n_base: np.ndarray,
+                floor_offset: float) -> RoadStep | None:
+        """The step k-1 -> k from the floor region, at the estimate's poses (after keyframe k's update); kept as
+        ``pending`` for the next update. ``n_base``, ``floor_offset``: the floor in keyframe k-1's base frame."""
+        self.pending = None
+        if self._image is None or self._previous is None or self._image[0] != k or self._previous[0] != k - 1:
+            return None
+        self.n_tried += 1
+        T_wc0, T_wc1 = T_world_base0 @ self.T_base_cam, T_world_base1 @ self.T_base_cam
+        n_cam, h = floor_in_camera(self.T_base_cam, n_base, floor_offset)
+        got = measure_step(self.camera, self._previous[1], self._image[1], T_wc0, T_wc1, n_cam, h, self.cfg, self.grid)
+        if got is None:
+            return None
+        camera_m, corr, n = got
+        step = RoadStep(k, camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, camera_m),
+                        float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])), corr, n)
+        self.steps.append(step)
+        self.pending = step
+        return step
+
+    def take_pending(self) -> RoadStep | None:
+        step, self.pending = self.pending, None
+        return step
+
+
+class RoadRegion:
+    """``ground.road_region`` in the back end (``SlidingWindowBackend``): after each update, the new step measured at
+    the estimate (``after_update``); before the next, its range factor (``add_factor``), while both poses are in the
+    window and the floor may be tied (``FloorModel.ties_allowed``: with wheels, floor and wheels tested and agreeing,
+    as for the floor's corners). Off (``ground.road_region.enabled`` false, or no ground cue): every call does
+    nothing."""
+
+    def __init__(self, camera: CameraModel, cfg: BackendConfig, floor, kf_pose: dict[int, np.ndarray]):
+        self.cfg = cfg
+        self.floor = floor  # the window's FloorModel: whether the floor is metric and may be tied, its normal
+        self.kf_pose = kf_pose  # the window's keyframe poses (the smoother's; read here)
+        on = cfg.ground.road_region.enabled and floor.use_ground
+        self.cue = RoadRegionCue(camera, cfg.ground.road_region, camera.T_base_cam) if on else None
+        self.ratio = float("nan")  # the last keyframe's measured step over the estimate's (nan: none)
+        self.n_factors = 0  # range factors added to the smoother
+
+    def after_update(self, k: int, image: np.ndarray | None) -> float | None:
+        """Keyframe k's step measured at the new estimate (its factor goes into the next update). Returns the camera
+        height the measurement implies in the estimate's scale (the known height times the estimate's step over the
+        measured one; None: not measured), the floor's measurement for the cue check."""
+        self.ratio = float("nan")
+        if self.cue is None:
+            return None
+        self.cue.keep_image(k, image)
+        if k == 0 or not self.floor.ground_active() or (k - 1) not in self.kf_pose:
+            self.cue.pending = None
+            return None
+        n = self.floor.floor_normal_base()  # the set-up's base z, or the floor's learnt normal when the floor uses it
+        step = self.cue.measure(k, self.kf_pose[k - 1], self.kf_pose[k], np.array([0.0, 0.0, 1.0]) if n is None else n,
+                                self.floor.floor_offset(n))
+        if step is None or step.camera_m <= 0:
+            return None
+        self.ratio = step.camera_m / step.estimate_camera_m
+        return self.floor.camera_height_m / self.ratio
+
+    def add_factor(self, graph, w0: int) -> None:
+        """The last measured step as a range factor between its two poses ``X(k-1)``, ``X(k)``, if both stay in the
+        window through this update (``w0``: its start) and the floor may be tied."""
+        from .factors import X, threshold
+
+        step = None if self.cue is None else self.cue.take_pending()
+        if step is None or step.keyframe - 1 <= w0 or not self.floor.ties_allowed():
+            return
+        r = self.cfg.ground.road_region
+        graph.add(range_factor(X(step.keyframe - 1), X(step.keyframe), step.base_m, r.sigma_fraction * step.base_m,
+                               self.cfg.ground.robust, threshold(r.robust_k, 1, self.cfg)))
+        self.n_factors += 1
+
+    def forget(self) -> None:
+        """The window was reset: no step is measured across it, none is pending."""
+        self.ratio = float("nan")
+        if self.cue is not None:
+            self.cue.keep_image(-1, None)
+            self.cue.pending = None
