@@ -201,3 +201,27 @@ def test_the_summary_counts_the_steps_the_region_measured():
     assert got["road_region_steps"] == 3 and got["road_region_ratio_median"] == pytest.approx(1.01)
     off = floor_summary([rec(0, True, nan), rec(1, True, nan)])
     assert off["road_region_steps"] == 0 and off["road_region_ratio_median"] is None
+
+
+def test_a_masked_bonnet_in_the_region_is_left_out():
+    """The robot's own body in the lower image (it moves with the camera: textured, the same in both images) pulls
+    the alignment toward no motion (when written: no peak inside the search, so no measurement); masked (the front
+    end's masks reach the back end with the image), the floor's pixels alone give the length (-0.15%)."""
+    cam, tex = _camera(), _texture(5, lane_lines=False)
+    T0, T1 = _step()
+    d = _camera_distance(cam, T0, T1)
+    bonnet = np.random.default_rng(0).uniform(0, 255, (90, cam.width)).astype(np.uint8)
+    imgs = []
+    for T in (T0, T1):
+        img = _render(cam, T, tex)
+        img[-90:] = bonnet  # the lower 90 rows: the body, fixed in the image
+        imgs.append(smoothed(img))
+    mask = np.full((cam.height, cam.width), 255, np.uint8)
+    mask[-95:] = 0
+    n_cam, h = floor_in_camera(cam.T_base_cam, np.array([0.0, 0.0, 1.0]), 0.0)
+    cfg = RoadRegionConfig(enabled=True)
+    args = (cam, imgs[0], imgs[1], T0 @ cam.T_base_cam, T1 @ cam.T_base_cam, n_cam, h, cfg)
+    plain = measure_step(*args)
+    masked = measure_step(*args, masks=(mask, mask))
+    assert plain is None or abs(plain[0] / d - 1.0) > 0.03, plain
+    assert masked is not None and abs(masked[0] / d - 1.0) < 0.01, masked

@@ -84,8 +84,10 @@ class FrontendOutput:
     # (N,) how much 1 px of image noise is stretched in pixels_undistorted at each track (largest
     # singular value of the undistortion Jacobian; 1 for a pinhole). None: not computed (all 1).
     pixel_sigma_scale: np.ndarray | None = None
-    # The keyframe's grey image, for the back end's floor region (``backend.ground.road_region``); None: not sent.
+    # The keyframe's grey image and its usable pixels (0: masked), for the back end's floor region
+    # (``backend.ground.road_region``); None: not sent (the mask: every pixel usable).
     image: np.ndarray | None = None
+    image_mask: np.ndarray | None = None
 
 
 @dataclass

@@ -16,8 +16,10 @@ it: the correlation drops, the robust loss and the correlation threshold take it
 against the camera is known. The last one is its bias: the region's rays meet the floor at grazing angles, so a
 tilt error ``da`` moves ``s`` by about ``da / tan(depression)`` (9% a degree with a car's camera looking 6-10 m ahead).
 The normal is the floor's learnt one (``FloorAttitude``: a mount pitched against ``T_base_cam``) when known, else the
-set-up's, tilted by the estimate's own roll and pitch of the base (a rocking base). A step's sigma is
-``sigma_fraction`` of its length.
+set-up's (the base's z axis: a rocking base's tilt between keyframes is not applied; the estimate's attitude
+against the world, measured as the alternative, drifts by tenths of a degree on a long street and biased the steps
+by 2.6%). A step's sigma is ``sigma_fraction`` of its length. Masked pixels (``frontend`` masks: a bonnet, the
+robot's own body) are left out of the region in both images.
 
 Pure numpy and OpenCV (no GTSAM but in ``range_factor``): tested on its own (``tests/test_road_region.py``).
 """
@@ -106,8 +108,9 @@ class _Warp:
     """The correlation of the floor region of image k-1 with image k warped by the floor's homography, per s."""
 
     def __init__(self, camera: CameraModel, img0: np.ndarray, img1: np.ndarray, uv0: np.ndarray, X0: np.ndarray,
-                 R: np.ndarray, t_dir: np.ndarray, n_cam: np.ndarray, h: float, min_pixels: int):
-        self.camera, self.img1 = camera, img1
+                 R: np.ndarray, t_dir: np.ndarray, n_cam: np.ndarray, h: float, min_pixels: int,
+                 mask1: np.ndarray | None = None):
+        self.camera, self.img1, self.mask1 = camera, img1, mask1
         self.pinhole = not camera.has_distortion
         self.a = img0[uv0[:, 1], uv0[:, 0]].astype(np.float32)
         self.RX = (X0 @ R.T).astype(np.float32)  # (R X) for each floor point, camera k
@@ -137,6 +140,10 @@ class _Warp:
         uv, front = self.pixels(s)
         u0, u1, v0, v1 = self.bounds
         inside = front & (uv[:, 0] >= u0) & (uv[:, 0] <= u1) & (uv[:, 1] >= v0) & (uv[:, 1] <= v1)
+        if self.mask1 is not None:  # samples landing on masked pixels of image k are no floor
+            idx = np.nonzero(inside)[0]
+            p = uv[idx] + 0.5
+            inside[idx[self.mask1[p[:, 1].astype(int), p[:, 0].astype(int)] == 0]] = False
         n = self.n_last = int(inside.sum())
         if n < self.min_pixels:
             return -1.0, n
@@ -171,7 +178,8 @@ def _rot_y(a: float) -> np.ndarray:
 
 def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_world_cam0: np.ndarray,
                  T_world_cam1: np.ndarray, n_cam: np.ndarray, h: float, cfg: RoadRegionConfig,
-                 grid: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float, int] | None:
+                 grid: tuple[np.ndarray, np.ndarray] | None = None,
+                 masks: tuple[np.ndarray | None, np.ndarray | None] = (None, None)) -> tuple[float, float, int] | None:
     """The camera step's metric length from the floor region (``img0``/``img1``: ``smoothed`` images of the two
     keyframes; the poses give the rotation and the direction).
 
@@ -188,10 +196,13 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
     if d_est < 1e-6 or h <= 0:
         return None
     uv0, X0 = region_rays(grid if grid is not None else pixel_grid(camera, cfg.step_px), n_cam, h, cfg)
+    if masks[0] is not None:  # the pixels masked in image k-1 are no floor
+        usable = masks[0][uv0[:, 1], uv0[:, 0]] > 0
+        uv0, X0 = uv0[usable], X0[usable]
     if len(uv0) < cfg.min_pixels:
         return None
     t_dir = t / d_est
-    warp = _Warp(camera, img0, img1, uv0, X0, R, t_dir, n_cam, h, cfg.min_pixels)
+    warp = _Warp(camera, img0, img1, uv0, X0, R, t_dir, n_cam, h, cfg.min_pixels, masks[1])
     s_est = d_est / h
     if warp.flow_px(s_est) < cfg.min_flow_px:
         return None
@@ -270,16 +281,18 @@ class RoadRegionCue:
     def __init__(self, camera: CameraModel, cfg: RoadRegionConfig, T_base_cam: np.ndarray):
         self.camera, self.cfg, self.T_base_cam = camera, cfg, T_base_cam
         self.grid = pixel_grid(camera, cfg.step_px)
-        self._image: tuple[int, np.ndarray] | None = None  # (keyframe, smoothed image) of the newest keyframe
-        self._previous: tuple[int, np.ndarray] | None = None  # the one before it
+        # (keyframe, smoothed image, mask) of the newest keyframe, and of the one before it
+        self._image: tuple[int, np.ndarray, np.ndarray | None] | None = None
+        self._previous: tuple[int, np.ndarray, np.ndarray | None] | None = None
         self.pending: RoadStep | None = None  # measured, its factor not yet in the smoother
         self.steps: list[RoadStep] = []  # every step measured
         self.n_tried = 0
 
-    def keep_image(self, k: int, image: np.ndarray | None) -> None:
-        """Keyframe k's image (grey, as measured); None: no image (the step is not measured)."""
+    def keep_image(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None) -> None:
+        """Keyframe k's image (grey, as measured) and its usable pixels (0: masked; None: all); no image: the step
+        to it is not measured."""
         self._previous = self._image
-        self._image = None if image is None else (k, smoothed(image))
+        self._image = None if image is None else (k, smoothed(image), mask)
 
     def measure(self, k: int, T_world_base0: np.ndarray, T_world_base1: np.ndarray, n_base: np.ndarray,
                 floor_offset: float) -> RoadStep | None:
@@ -291,7 +304,8 @@ class RoadRegionCue:
         self.n_tried += 1
         T_wc0, T_wc1 = T_world_base0 @ self.T_base_cam, T_world_base1 @ self.T_base_cam
         n_cam, h = floor_in_camera(self.T_base_cam, n_base, floor_offset)
-        got = measure_step(self.camera, self._previous[1], self._image[1], T_wc0, T_wc1, n_cam, h, self.cfg, self.grid)
+        got = measure_step(self.camera, self._previous[1], self._image[1], T_wc0, T_wc1, n_cam, h, self.cfg, self.grid,
+                           (self._previous[2], self._image[2]))
         if got is None:
             return None
         camera_m, corr, n = got
@@ -322,14 +336,14 @@ class RoadRegion:
         self.ratio = float("nan")  # the last keyframe's measured step over the estimate's (nan: none)
         self.n_factors = 0  # range factors added to the smoother
 
-    def after_update(self, k: int, image: np.ndarray | None) -> float | None:
+    def after_update(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None) -> float | None:
         """Keyframe k's step measured at the new estimate (its factor goes into the next update). Returns the camera
         height the measurement implies in the estimate's scale (the known height times the estimate's step over the
         measured one; None: not measured), the floor's measurement for the cue check."""
         self.ratio = float("nan")
         if self.cue is None:
             return None
-        self.cue.keep_image(k, image)
+        self.cue.keep_image(k, image, mask)
         if k == 0 or not self.floor.ground_active() or (k - 1) not in self.kf_pose:
             self.cue.pending = None
             return None

@@ -266,7 +266,9 @@ class Frontend:
         self.kf_time = 0.0
         self.focal = 0.5 * (camera.fx + camera.fy)
 
-    def _mask(self, frame: Frame) -> np.ndarray | None:
+    def mask_of(self, frame: Frame) -> np.ndarray | None:
+        """The frame's usable pixels (uint8, 0 where features are forbidden): the static mask, the field of view and
+        the frame's own mask together; None: every pixel."""
         m = self.static_mask
         if frame.mask is not None:
             m = frame.mask if m is None else np.minimum(m, frame.mask)
@@ -333,7 +335,7 @@ class Frontend:
                 image = self.clahe.apply(image)
             elif self.gain is not None:
                 image = self.gain(image)
-        tracks = self.tracker.track(image, self._mask(frame))  # times its tracking and detection itself
+        tracks = self.tracker.track(image, self.mask_of(frame))  # times its tracking and detection itself
         lap = Laps()
         xn = self.camera.undistort_normalized(tracks.pixels)
         # The mask bounds the field of view to whole pixels; sub-pixel refinement and KLT can leave a

@@ -195,11 +195,12 @@ class Odometry:
         idx = self._n_tracked if index is None else index
         if self.offset_applied_since is None and self.clock_mode is WheelClockMode.FIXED:
             self.offset_applied_since = float(t)
-        fo = self.frontend.process(Frame(idx, float(t), image, mask), self._odom_since_kf(t), force_keyframe=is_last)
+        frame = Frame(idx, float(t), image, mask)
+        fo = self.frontend.process(frame, self._odom_since_kf(t), force_keyframe=is_last)
         odom, note = None, ""
         if fo.is_keyframe:
-            if self.cfg.backend.ground.road_region.enabled:
-                fo.image = image
+            if self.cfg.backend.ground.road_region.enabled:  # a copy: the caller may reuse its buffer
+                fo.image, fo.image_mask = image.copy(), self.frontend.mask_of(frame)
             self._observe_clock(fo, float(t))
             self._update_offset(float(t))
             odom = self._odom_step(self.last_kf_time, t) if self.last_kf_time is not None else None
