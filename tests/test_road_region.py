@@ -225,3 +225,41 @@ def test_a_masked_bonnet_in_the_region_is_left_out():
     masked = measure_step(*args, masks=(mask, mask))
     assert plain is None or abs(plain[0] / d - 1.0) > 0.03, plain
     assert masked is not None and abs(masked[0] / d - 1.0) < 0.01, masked
+
+
+@pytest.mark.slow
+def test_a_window_reset_between_measured_steps_keeps_the_run_going(tmp_path, monkeypatch):
+    """A degenerate update (a landmark with one projection) at keyframe 15 of a rendered street with the floor's
+    region on: the window resets once, the step into the failed keyframe is not measured (its image never reached
+    the cue), and the run goes on measuring steps to a metric end."""
+    from windowvo.backend import factors as fac
+    from windowvo.backend.factors import X
+    from windowvo.backend.smoother import SlidingWindowBackend
+    from windowvo.runtime.job import run_job
+    from windowvo.tools import scale_suite as ss
+
+    submit = SlidingWindowBackend.submit
+    injected: list[int] = []
+
+    def degenerate_once(self, graph, values, ts_map, remove):
+        if self.k == 15 and not injected:
+            injected.append(self.k)
+            key = fac.L(10**9)
+            values.insert(key, gtsam.Point3(5.0, 1.0, 1.0))
+            ts_map.insert((key, float(self.k)))
+            graph.add(gtsam.GenericProjectionFactorCal3_S2(np.array([300.0, 120.0]), gtsam.noiseModel.Isotropic.Sigma(
+                2, 1.0), X(self.k), key, self.K, self.body_P_sensor))
+        return submit(self, graph, values, ts_map, remove)
+
+    monkeypatch.setattr(SlidingWindowBackend, "submit", degenerate_once)
+    case = ss.ScaleCase("street_reset", "street", {"path": "straight", "seed": 341, "duration_s": 5.0,
+                                                   **ss.STREET_IMAGE,
+                                                   "wheel": {"scale_error": 0.02, "yaw_bias_per_m": 0.002}})
+    data = ss.case_config(case, tmp_path, tmp_path / "out", "fused", ("backend.ground.road_region.enabled=true",))
+    rep = run_job(config_from_dict(data))
+    assert injected == [15] and rep.result.n_resets == 1
+    ratios = [r.road_step_ratio for r in rep.result.records if r.is_keyframe]
+    after = [x for x in ratios[16:] if np.isfinite(x)]
+    assert len(after) >= 10, ratios  # measured again after the reset
+    assert rep.result.metric and rep.accuracy is not None
+    assert rep.accuracy.ate_se3_rmse_m < 0.01 * rep.accuracy.path_length_m
