@@ -21,7 +21,9 @@ against the world, measured as the alternative, drifts by tenths of a degree on 
 by 2.6%). A step's sigma is ``sigma_fraction`` of its length. Masked pixels (``frontend`` masks: a bonnet, the
 robot's own body) are left out of the region in both images.
 
-Pure numpy and OpenCV (no GTSAM but in ``range_factor``): tested on its own (``tests/test_road_region.py``).
+The measurement (``measure_step``, ``RoadRegionCue``: which images, which step) is numpy and OpenCV, tested on its own
+(``tests/test_road_region.py``); ``RoadRegion`` is the smoother's side (when to measure, when its range factor may go
+in), and ``range_factor`` the one GTSAM factor.
 """
 
 from __future__ import annotations
@@ -33,9 +35,12 @@ import numpy as np
 
 from ..camera import CameraModel
 from ..config import BackendConfig, RoadRegionConfig
+from ..geometry import rot_y
 
-# The search: a coarse grid of this many scales over +-COARSE_SPAN (log) around the estimate's step, then a parabola
-# through the best one and its neighbours, refined once on a grid of FINE_STEPS over +-FINE_SPAN.
+# The search (``_search``): a coarse grid of COARSE_STEPS lengths over +-COARSE_SPAN (log) around the estimate's step,
+# a parabola through the best one and its neighbours, then REFINE_ROUNDS rounds of the direction's sideways angle
+# and the length on grids of FINE_STEPS (the length over 3 FINE_SPAN, the angle over search_direction_deg), each
+# round on a third of the last span.
 COARSE_STEPS = 29
 COARSE_SPAN = 0.35
 FINE_STEPS = 9
@@ -171,11 +176,6 @@ def _parabola_peak(xs: np.ndarray, cs: np.ndarray, i: int) -> float:
     return float(xs[i] + off * (xs[i + 1] - xs[i]))
 
 
-def _rot_y(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
 def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_world_cam0: np.ndarray,
                  T_world_cam1: np.ndarray, n_cam: np.ndarray, h: float, cfg: RoadRegionConfig,
                  grid: tuple[np.ndarray, np.ndarray] | None = None,
@@ -220,7 +220,7 @@ def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadReg
 
     def corr(q: np.ndarray) -> float:
         if q[1] != beta[0]:
-            warp.set_direction(_rot_y(float(q[1])) @ t_dir)
+            warp.set_direction(rot_y(float(q[1])) @ t_dir)  # about the camera's y axis
             beta[0] = float(q[1])
         return warp.correlation(float(np.exp(q[0])))[0]
 
@@ -285,8 +285,6 @@ class RoadRegionCue:
         self._image: tuple[int, np.ndarray, np.ndarray | None] | None = None
         self._previous: tuple[int, np.ndarray, np.ndarray | None] | None = None
         self.pending: RoadStep | None = None  # measured, its factor not yet in the smoother
-        self.steps: list[RoadStep] = []  # every step measured
-        self.n_tried = 0
 
     def keep_image(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None) -> None:
         """Keyframe k's image (grey, as measured) and its usable pixels (0: masked; None: all); no image: the step
@@ -301,7 +299,6 @@ class RoadRegionCue:
         self.pending = None
         if self._image is None or self._previous is None or self._image[0] != k or self._previous[0] != k - 1:
             return None
-        self.n_tried += 1
         T_wc0, T_wc1 = T_world_base0 @ self.T_base_cam, T_world_base1 @ self.T_base_cam
         n_cam, h = floor_in_camera(self.T_base_cam, n_base, floor_offset)
         got = measure_step(self.camera, self._previous[1], self._image[1], T_wc0, T_wc1, n_cam, h, self.cfg, self.grid,
@@ -311,7 +308,6 @@ class RoadRegionCue:
         camera_m, corr, n = got
         step = RoadStep(k, camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, camera_m),
                         float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])), corr, n)
-        self.steps.append(step)
         self.pending = step
         return step
 
