@@ -57,6 +57,47 @@ def test_floor_attitude_is_the_median_of_the_fits():
     assert not few.significant()
 
 
+def _step(azimuth_deg: float, climb_deg: float) -> np.ndarray:
+    """A unit step in the base frame: heading ``azimuth_deg`` from +x, climbing by ``climb_deg``."""
+    a, e = np.radians(azimuth_deg), np.radians(climb_deg)
+    return np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])
+
+
+def test_the_floor_tilt_from_the_motion_is_the_climb_of_the_steps():
+    """``ground.mount_from_motion``: a camera pitched 1 deg down against its T_base_cam sees the base's steps along
+    the floor climb by 1 deg in the set-up's base frame, forward and reversing alike; the learnt tilt toward +x is
+    -1 deg (the floor's normal perpendicular to the steps), the roll stays the plane fits', steps far off the x
+    axis are left out, and a level base's noisy steps are not significant."""
+    rng = np.random.default_rng(3)
+    fa = FloorAttitude(min_fits=10, max_fits=60, from_motion=True)
+    for i in range(40):
+        sign = -1.0 if i % 4 == 0 else 1.0  # every fourth step reversing
+        d = sign * _step(rng.normal(0.0, 5.0), 1.0 + rng.normal(0.0, 0.1))
+        assert fa.add_motion(d)
+        assert fa.ready == (i + 1 >= 10)
+    assert not fa.add_motion(_step(60.0, 5.0)) and not fa.add_motion(_step(120.0, 5.0))  # turns: left out
+    tx, ty = fa.tilt_deg()
+    assert tx == pytest.approx(-1.0, abs=0.05) and ty == 0.0, (tx, ty)
+    assert np.allclose(fa.normal @ _step(0.0, 1.0), 0.0, atol=1e-3)  # perpendicular to the steps
+    assert fa.standard_error_deg() < 0.05 and fa.significant()
+    for _ in range(10):  # plane fits rolled by 0.8 deg give the roll, not the pitch
+        fa.add(rpy_to_R(np.radians(0.8), np.radians(3.0), 0.0)[:, 2])
+    tx, ty = fa.tilt_deg()
+    assert tx == pytest.approx(-1.0, abs=0.05) and ty == pytest.approx(-0.8, abs=0.01), (tx, ty)
+    level = FloorAttitude(min_fits=10, max_fits=60, from_motion=True)
+    for _ in range(40):
+        level.add_motion(_step(rng.normal(0.0, 5.0), rng.normal(0.0, 0.2)))
+    assert abs(level.tilt_deg()[0]) < 0.1 and not level.significant()
+    rocking = FloorAttitude(min_fits=10, max_fits=60, from_motion=True)  # the pitch changes: not a mount error
+    for i in range(40):
+        rocking.add_motion(_step(0.0, 0.0 if i < 20 else 1.5))
+    assert not rocking.significant()
+    off = FloorAttitude(min_fits=10, max_fits=60)  # the option off: steps change nothing
+    for _ in range(20):
+        off.add_motion(_step(0.0, 1.0))
+    assert not off.ready and np.allclose(off.normal, [0, 0, 1])
+
+
 def _tilted_z(roll_deg: np.ndarray, pitch_deg: np.ndarray) -> np.ndarray:
     return np.array([rpy_to_R(np.radians(r), np.radians(p), 0.0)[:, 2] for r, p in zip(roll_deg, pitch_deg)])
 

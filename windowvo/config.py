@@ -308,7 +308,13 @@ class GroundConfig(_Section):
     def _mount_bool(cls, v):
         return {True: "on", False: "off"}.get(v, v) if isinstance(v, bool) else v
 
-    mount_min_fits: int = Field(10, ge=1, description="floor plane fits before the learnt normal is reported and used")
+    mount_from_motion: bool = Field(
+        False, description="learn the floor's tilt toward the base's +x (the mount's pitch) from the direction the "
+        "base moves in, as vision alone measures it between keyframes (a ground robot moves along its floor), "
+        "instead of from the fitted floor planes; the roll stays the planes'. Needs no floor texture, and kerbs or "
+        "pavements beside the path do not bias it")
+    mount_min_fits: int = Field(10, ge=1, description="floor plane fits (with mount_from_motion: keyframe steps) "
+                                "before the learnt normal is reported and used")
     mount_fits: int = Field(200, ge=1, description="the learnt normal is the median of this many latest fits")
     floor_state: bool = Field(
         False, description="each keyframe that ties floor points gets a floor frame F(k) of its own: a pose state "

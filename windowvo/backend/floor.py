@@ -52,6 +52,9 @@ log = logging.getLogger(__name__)
 FLOOR_AGREEMENT = 0.1
 # Smallest camera height (m) for which the ground cue makes sense.
 MIN_CAMERA_HEIGHT_M = 0.05
+# A keyframe step's direction tells the floor's tilt (``observe_motion``) only with this much parallax
+# (rotation taken out, pixels): below it the two-view direction is noise.
+MOTION_MIN_PARALLAX_PX = 2.5
 # Keyframes of the window needed before the base's rocking is judged (a median over fewer is noise).
 MIN_ROCKING_KEYFRAMES = 5
 
@@ -88,7 +91,7 @@ class FloorModel:
         self._rng = np.random.default_rng(g.seed)
         # The floor's attitude in the base frame is always learnt (the summary reports it: a tilted mount
         # shows there); with ground.mount_calibration it is also used.
-        self.floor_attitude = FloorAttitude(g.mount_min_fits, g.mount_fits)
+        self.floor_attitude = FloorAttitude(g.mount_min_fits, g.mount_fits, g.mount_from_motion)
         # ground.mount_calibration auto: the learnt normal is used from the first keyframe where its tilt is
         # significant on (sticky), and the wheel calibration's scale is released once at that keyframe.
         self.mount_normal_used = g.mount_calibration is MountCalibration.ON
@@ -244,6 +247,15 @@ class FloorModel:
         return mask, fit
 
     # ------------------------------------------------------------------ which floor they are tied to
+    def observe_motion(self, fo: FrontendOutput) -> None:
+        """``ground.mount_from_motion``: keyframe k's step from the last keyframe, as the front end's two-view
+        geometry measured it (vision alone), as evidence of the floor's tilt (``FloorAttitude.add_motion``)."""
+        if (not self.floor_attitude.from_motion or not fo.vision_ok or fo.t_dir_kf is None or fo.R_cam_kf_cam is None
+                or fo.rot_comp_parallax_px < MOTION_MIN_PARALLAX_PX):
+            return
+        c_kf = -fo.R_cam_kf_cam.T @ fo.t_dir_kf  # the camera's displacement in the last keyframe's camera frame
+        self.floor_attitude.add_motion(self.T_base_cam[:3, :3] @ c_kf)
+
     def judge_mount(self, k: int, calibrating: bool) -> bool:
         """``ground.mount_calibration`` auto: switch to the learnt floor normal once its tilt is significant.
         Returns whether it switched at keyframe k (the caller then releases the wheel calibration's scale).

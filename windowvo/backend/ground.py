@@ -235,6 +235,11 @@ def level_up(z_axes: np.ndarray, floor_normal: np.ndarray, select_deg: float) ->
 # rocking ones up to 0.36 (2.5 deg of rocking, few fits: standard error larger), a mount pitched by
 # 0.5 / 1 deg 0.46 / 0.89.
 MOUNT_TILT_MIN_DEG = 0.3
+# ``FloorAttitude.add_motion``: steps further than this from the base's x axis (turns, sideways moves) are left out.
+MOTION_MAX_AZIMUTH_DEG = 20.0
+# ``FloorAttitude.normal`` with the motion's tilt: the median of this many latest steps (the floor under the camera
+# now: the body pitches on its suspension with the road and the load, KITTI 01's camera by 0.7 deg in 3 s).
+MOTION_WINDOW_STEPS = 10
 
 
 def range_sigmas_m(sigma_m: float, own_sigma_m: float, p_base: np.ndarray, tilt_sigma_rad: float
@@ -268,10 +273,41 @@ class FloorAttitude:
     is the mount's static error without them; it is ``ready`` from ``min_fits`` fits on.
     """
 
-    def __init__(self, min_fits: int, max_fits: int):
+    def __init__(self, min_fits: int, max_fits: int, from_motion: bool = False):
         self.min_fits = min_fits
         self._xy: deque[tuple[float, float]] = deque(maxlen=max_fits)
         self._normal: np.ndarray | None = None  # the median, computed once per fit (read several times)
+        # ``ground.mount_from_motion``: the tilt toward +x from the direction the base moves in (``add_motion``).
+        self.from_motion = from_motion
+        self._motion_x: deque[float] = deque(maxlen=max_fits)
+
+    def add_motion(self, d_base: np.ndarray) -> bool:
+        """One keyframe step's direction of motion, from vision alone (the front end's two-view direction), in the
+        base frame ``T_base_cam`` defines at the step's first keyframe. Returns whether it was taken.
+
+        A ground robot moves along its floor, so the floor's normal is perpendicular to every step: a step
+        along the base's x axis that climbs by an angle e in the set-up's base frame says the floor is tilted
+        by -e toward +x, i.e. the camera is pitched by e against its calibration (forward or reversing alike:
+        the tilt is ``-d_z / d_x``). Only steps within ``MOTION_MAX_AZIMUTH_DEG`` of the x axis are taken: a
+        sideways step's climb is the mount's roll, which the plane fits measure. Unlike a plane fit it needs
+        no floor texture and no point on the floor, and a kerb or a raised pavement does not bias it."""
+        d = np.asarray(d_base, float)
+        horizontal = float(np.hypot(d[0], d[1]))
+        if horizontal <= 0.0 or abs(d[0]) < horizontal * np.cos(np.radians(MOTION_MAX_AZIMUTH_DEG)):
+            return False
+        nx = -float(d[2]) / float(d[0])
+        self._motion_x.append(nx / float(np.sqrt(1.0 + nx * nx)))
+        self._normal = None
+        return True
+
+    def _motion_ready(self) -> bool:
+        return self.from_motion and len(self._motion_x) >= self.min_fits
+
+    def _motion_x_deg(self) -> np.ndarray:
+        return np.degrees(np.arcsin(np.clip(np.asarray(self._motion_x), -1.0, 1.0)))
+
+    def _fits_deg(self) -> np.ndarray:
+        return np.degrees(np.arcsin(np.clip(np.asarray(self._xy), -1.0, 1.0))).reshape(-1, 2)
 
     def add(self, normal_base: np.ndarray) -> None:
         n = np.asarray(normal_base, float)
@@ -281,12 +317,19 @@ class FloorAttitude:
 
     @property
     def ready(self) -> bool:
-        return len(self._xy) >= self.min_fits
+        return len(self._xy) >= self.min_fits or self._motion_ready()
 
     @property
     def normal(self) -> np.ndarray:
         """Unit normal of the floor in the base frame (pointing up): the median of the fits (the base z
-        axis before any)."""
+        axis before any); with the motion's tilt (``from_motion``, once ready) its x from the motion and its y
+        from the fits once they are ready (0 before)."""
+        if self._motion_ready():
+            if self._normal is None:
+                x = float(np.median(np.asarray(self._motion_x)[-MOTION_WINDOW_STEPS:]))
+                y = float(np.median(np.asarray(self._xy)[:, 1])) if len(self._xy) >= self.min_fits else 0.0
+                self._normal = np.array([x, y, np.sqrt(max(1.0 - x * x - y * y, 0.0))])
+            return self._normal.copy()
         if not self._xy:
             return np.array([0.0, 0.0, 1.0])
         if self._normal is None:
@@ -303,18 +346,32 @@ class FloorAttitude:
         lag-1 autocorrelation of the fits (each axis; the smaller n_eff). Counted as independent, 10 fits made a
         0.3-0.8 deg bias of a first stretch look like a significant mount error (a rendered loop and warehouse
         whose mount is exact switched at keyframes 12-13)."""
+        if self._motion_ready():
+            se_y = _median_and_se_1d(self._fits_deg()[:, 1])[1] if len(self._xy) >= self.min_fits else 0.0
+            return float(np.hypot(_median_and_se_1d(self._motion_x_deg())[1], se_y))
         if len(self._xy) < 2:
             return float("inf")
-        return _median_and_se(np.degrees(np.arcsin(np.clip(np.asarray(self._xy), -1.0, 1.0))))[1]
+        return _median_and_se(self._fits_deg())[1]
 
     def significant(self) -> bool:
         """Whether the learnt tilt says the mount is off: ready, ``tilt_significant``, and constant. A mount
         error is constant, the base's rocking and the first keyframes' poorly triangulated floors are not: the
         older and the newer half of the fits must each show a significant tilt, and the same one (within three
         of their combined standard errors)."""
-        if not self.ready or not tilt_significant(float(np.hypot(*self.tilt_deg())), self.standard_error_deg()):
+        if self._motion_ready() and _significant_throughout(self._motion_x_deg()):
+            return True
+        return self._fits_significant()
+
+    def _fits_significant(self) -> bool:
+        """``significant`` from the plane fits alone."""
+        if len(self._xy) < self.min_fits:
             return False
-        xy = np.degrees(np.arcsin(np.clip(np.asarray(self._xy), -1.0, 1.0)))
+        x, y = np.median(np.asarray(self._xy), axis=0)  # the fits' normal, as ``normal`` without the motion
+        z = np.sqrt(max(1.0 - x * x - y * y, 0.0))
+        tilt = float(np.hypot(np.degrees(np.arctan2(x, z)), np.degrees(np.arctan2(y, z))))
+        xy = self._fits_deg()
+        if not tilt_significant(tilt, _median_and_se(xy)[1]):
+            return False
         halves = [_median_and_se(h) for h in (xy[: len(xy) // 2], xy[len(xy) // 2:])]
         (m0, se0), (m1, se1) = halves
         return (all(tilt_significant(float(np.hypot(*m)), se) for m, se in halves)
@@ -332,6 +389,24 @@ def _median_and_se(xy_deg: np.ndarray) -> tuple[np.ndarray, float]:
         return np.median(xy_deg, axis=0), float("inf")
     sigma = 1.4826 * np.median(np.abs(xy_deg - np.median(xy_deg, axis=0)), axis=0)
     return np.median(xy_deg, axis=0), float(1.2533 * np.hypot(*sigma) / np.sqrt(effective_sample_size(xy_deg)))
+
+
+def _median_and_se_1d(deg: np.ndarray) -> tuple[float, float]:
+    """The median of one axis's tilts (deg) and its standard error (as ``_median_and_se``)."""
+    if len(deg) < 2:
+        return float(np.median(deg)) if len(deg) else 0.0, float("inf")
+    sigma = 1.4826 * float(np.median(np.abs(deg - np.median(deg))))
+    return float(np.median(deg)), 1.2533 * sigma / float(np.sqrt(effective_sample_size(deg)))
+
+
+def _significant_throughout(deg: np.ndarray) -> bool:
+    """One axis's tilt series is significant as a whole and in each half, with one sign (it may change in size:
+    the motion's tilt follows the body's pitch on its suspension as well as the mount's)."""
+    m, se = _median_and_se_1d(deg)
+    if not tilt_significant(abs(m), se):
+        return False
+    halves = [_median_and_se_1d(h) for h in (deg[: len(deg) // 2], deg[len(deg) // 2:])]
+    return all(tilt_significant(abs(mh), seh) and np.sign(mh) == np.sign(m) for mh, seh in halves)
 
 
 def effective_sample_size(series: np.ndarray) -> float:

@@ -299,6 +299,7 @@ class SlidingWindowBackend:
         k = self.k
         lap = Laps()
         self.wheel.start_with_floor(k, self.floor.n_ground_keyframes + self.road.n_factors)
+        self.floor.observe_motion(fo)
         if self.floor.judge_mount(k, self.calibrate):
             self.wheel.release_scale()
         lap(Stage.BACKEND_FLOOR)
