@@ -4,7 +4,7 @@ The smoother (``smoother.py``) asks it, at each keyframe, which new landmarks li
 a plane fitted over the window's landmarks with ``ground.floor_mask``; after a monocular run's scale drifted,
 ``_floor_after_scale_drift``), which floor they are tied to (the keyframe's base frame; a level frame when the
 base rocks, ``level_up``; a learnt mount tilt with ``ground.mount_calibration``, ``judge_mount`` and
-``floor_normal_base``), and for the ground factors themselves (``birth_ground_factor``; at the mount switch
+``floor_normal_base``; with ``ground.mount_from_motion`` its pitch from the base's steps, ``observe_motion``), and for the ground factors themselves (``birth_ground_factor``; at the mount switch
 ``retie_window_floor``; off-floor landmarks lose theirs, ``untie_off_floor``). A monocular run takes its metric
 scale from the floor: at its start (``first_baseline``) or when the floor first comes into view
 (``late_metric_start``). With ``ground.floor_state`` a keyframe's floor points are tied to a floor frame ``F(k)``
@@ -57,6 +57,16 @@ MIN_CAMERA_HEIGHT_M = 0.05
 MOTION_MIN_PARALLAX_PX = 2.5
 # Keyframes of the window needed before the base's rocking is judged (a median over fewer is noise).
 MIN_ROCKING_KEYFRAMES = 5
+
+
+def observe_motion(attitude: FloorAttitude, fo: FrontendOutput, T_base_cam: np.ndarray) -> None:
+    """``ground.mount_from_motion``: a keyframe's step from the last keyframe, as the front end's two-view geometry
+    measured it (vision alone), as evidence of the floor's tilt (``FloorAttitude.add_motion``)."""
+    if (not attitude.from_motion or not fo.vision_ok or fo.t_dir_kf is None or fo.R_cam_kf_cam is None
+            or fo.rot_comp_parallax_px < MOTION_MIN_PARALLAX_PX):
+        return
+    c_kf = -fo.R_cam_kf_cam.T @ fo.t_dir_kf  # the camera's displacement in the last keyframe's camera frame
+    attitude.add_motion(T_base_cam[:3, :3] @ c_kf)
 
 
 def floors_agree(previous: float, current: float) -> bool:
@@ -247,15 +257,6 @@ class FloorModel:
         return mask, fit
 
     # ------------------------------------------------------------------ which floor they are tied to
-    def observe_motion(self, fo: FrontendOutput) -> None:
-        """``ground.mount_from_motion``: keyframe k's step from the last keyframe, as the front end's two-view
-        geometry measured it (vision alone), as evidence of the floor's tilt (``FloorAttitude.add_motion``)."""
-        if (not self.floor_attitude.from_motion or not fo.vision_ok or fo.t_dir_kf is None or fo.R_cam_kf_cam is None
-                or fo.rot_comp_parallax_px < MOTION_MIN_PARALLAX_PX):
-            return
-        c_kf = -fo.R_cam_kf_cam.T @ fo.t_dir_kf  # the camera's displacement in the last keyframe's camera frame
-        self.floor_attitude.add_motion(self.T_base_cam[:3, :3] @ c_kf)
-
     def judge_mount(self, k: int, calibrating: bool) -> bool:
         """``ground.mount_calibration`` auto: switch to the learnt floor normal once its tilt is significant.
         Returns whether it switched at keyframe k (the caller then releases the wheel calibration's scale).

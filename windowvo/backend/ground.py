@@ -263,7 +263,8 @@ def tilt_significant(tilt_deg: float, standard_error_deg: float) -> bool:
 
 
 class FloorAttitude:
-    """The floor's normal in the base frame, learnt from the floor planes fitted at the keyframes.
+    """The floor's normal in the base frame, learnt from the floor planes fitted at the keyframes (its pitch, with
+    ``from_motion``, from the direction of the base's steps: ``add_motion``).
 
     ``T_base_cam`` says where the camera sits on a base whose xy plane is the floor; a mount pitched or
     rolled by a degree against it tilts every floor point's height by its range times that angle, which

@@ -65,7 +65,7 @@ from ..types import (
 )
 from . import factors as fac
 from .factors import C, L, X
-from .floor import FloorModel
+from .floor import FloorModel, observe_motion
 from .landmark_factors import LandmarkFactors
 from .landmarks import LandmarkManager, reprojection_errors, reprojection_rms
 from .report import ScaleReport, scale_report, scale_sources
@@ -299,7 +299,7 @@ class SlidingWindowBackend:
         k = self.k
         lap = Laps()
         self.wheel.start_with_floor(k, self.floor.n_ground_keyframes + self.road.n_factors)
-        self.floor.observe_motion(fo)
+        observe_motion(self.floor.floor_attitude, fo, self.T_base_cam)
         if self.floor.judge_mount(k, self.calibrate):
             self.wheel.release_scale()
         lap(Stage.BACKEND_FLOOR)
