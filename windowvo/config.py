@@ -311,7 +311,8 @@ class GroundConfig(_Section):
     mount_from_motion: bool = Field(
         False, description="learn the floor's tilt toward the base's +x (the mount's pitch) from the direction the "
         "base moves in, as vision alone measures it between keyframes (a ground robot moves along its floor), "
-        "instead of from the fitted floor planes; the roll stays the planes'. Needs no floor texture, and kerbs or "
+        "instead of from the fitted floor planes (the median of the last 10 steps; the roll stays the planes', and "
+        "mount_calibration auto switches when either is significant). Needs no floor texture, and kerbs or "
         "pavements beside the path do not bias it")
     mount_min_fits: int = Field(10, ge=1, description="floor plane fits (with mount_from_motion: keyframe steps) "
                                 "before the learnt normal is reported and used")

@@ -334,9 +334,12 @@ class FloorAttitude:
         if not self._xy:
             return np.array([0.0, 0.0, 1.0])
         if self._normal is None:
-            x, y = np.median(np.asarray(self._xy), axis=0)
-            self._normal = np.array([x, y, np.sqrt(max(1.0 - x * x - y * y, 0.0))])
+            self._normal = self._fits_normal()
         return self._normal.copy()
+
+    def _fits_normal(self) -> np.ndarray:
+        x, y = np.median(np.asarray(self._xy), axis=0)
+        return np.array([x, y, np.sqrt(max(1.0 - x * x - y * y, 0.0))])
 
     def standard_error_deg(self) -> float:
         """Standard error of the learnt tilt (deg): the median's, 1.25 sigma / sqrt(n_eff), with the fits' sigma
@@ -348,8 +351,8 @@ class FloorAttitude:
         0.3-0.8 deg bias of a first stretch look like a significant mount error (a rendered loop and warehouse
         whose mount is exact switched at keyframes 12-13)."""
         if self._motion_ready():
-            se_y = _median_and_se_1d(self._fits_deg()[:, 1])[1] if len(self._xy) >= self.min_fits else 0.0
-            return float(np.hypot(_median_and_se_1d(self._motion_x_deg())[1], se_y))
+            se_y = _median_and_se(self._fits_deg()[:, 1])[1] if len(self._xy) >= self.min_fits else 0.0
+            return float(np.hypot(_median_and_se(self._motion_x_deg())[1], se_y))
         if len(self._xy) < 2:
             return float("inf")
         return _median_and_se(self._fits_deg())[1]
@@ -367,11 +370,8 @@ class FloorAttitude:
         """``significant`` from the plane fits alone."""
         if len(self._xy) < self.min_fits:
             return False
-        x, y = np.median(np.asarray(self._xy), axis=0)  # the fits' normal, as ``normal`` without the motion
-        z = np.sqrt(max(1.0 - x * x - y * y, 0.0))
-        tilt = float(np.hypot(np.degrees(np.arctan2(x, z)), np.degrees(np.arctan2(y, z))))
         xy = self._fits_deg()
-        if not tilt_significant(tilt, _median_and_se(xy)[1]):
+        if not tilt_significant(float(np.hypot(*_tilt_deg_of(self._fits_normal()))), _median_and_se(xy)[1]):
             return False
         halves = [_median_and_se(h) for h in (xy[: len(xy) // 2], xy[len(xy) // 2:])]
         (m0, se0), (m1, se1) = halves
@@ -380,34 +380,32 @@ class FloorAttitude:
 
     def tilt_deg(self) -> tuple[float, float]:
         """The normal's tilt toward the base's +x (forward) and +y (left), in degrees."""
-        n = self.normal
-        return float(np.degrees(np.arctan2(n[0], n[2]))), float(np.degrees(np.arctan2(n[1], n[2])))
+        return _tilt_deg_of(self.normal)
+
+
+def _tilt_deg_of(n: np.ndarray) -> tuple[float, float]:
+    """A floor normal's tilt toward the base's +x and +y (deg)."""
+    return float(np.degrees(np.arctan2(n[0], n[2]))), float(np.degrees(np.arctan2(n[1], n[2])))
 
 
 def _median_and_se(xy_deg: np.ndarray) -> tuple[np.ndarray, float]:
-    """The median tilt (deg, x and y) of some fits and its standard error (as ``FloorAttitude.standard_error_deg``)."""
+    """The median tilt (deg) of some fits, per axis (``(n, 2)``: x and y; ``(n,)``: one axis), and its standard
+    error (as ``FloorAttitude.standard_error_deg``; over both axes for two)."""
     if len(xy_deg) < 2:
-        return np.median(xy_deg, axis=0), float("inf")
+        return (np.median(xy_deg, axis=0) if len(xy_deg) else np.zeros(np.shape(xy_deg)[1:])), float("inf")
     sigma = 1.4826 * np.median(np.abs(xy_deg - np.median(xy_deg, axis=0)), axis=0)
-    return np.median(xy_deg, axis=0), float(1.2533 * np.hypot(*sigma) / np.sqrt(effective_sample_size(xy_deg)))
-
-
-def _median_and_se_1d(deg: np.ndarray) -> tuple[float, float]:
-    """The median of one axis's tilts (deg) and its standard error (as ``_median_and_se``)."""
-    if len(deg) < 2:
-        return float(np.median(deg)) if len(deg) else 0.0, float("inf")
-    sigma = 1.4826 * float(np.median(np.abs(deg - np.median(deg))))
-    return float(np.median(deg)), 1.2533 * sigma / float(np.sqrt(effective_sample_size(deg)))
+    spread = np.hypot(*sigma) if np.ndim(sigma) else abs(sigma)
+    return np.median(xy_deg, axis=0), float(1.2533 * spread / np.sqrt(effective_sample_size(xy_deg)))
 
 
 def _significant_throughout(deg: np.ndarray) -> bool:
     """One axis's tilt series is significant as a whole and in each half, with one sign (it may change in size:
     the motion's tilt follows the body's pitch on its suspension as well as the mount's)."""
-    m, se = _median_and_se_1d(deg)
-    if not tilt_significant(abs(m), se):
+    m, se = _median_and_se(deg)  # deg: (n,), one axis
+    if not tilt_significant(float(abs(m)), se):
         return False
-    halves = [_median_and_se_1d(h) for h in (deg[: len(deg) // 2], deg[len(deg) // 2:])]
-    return all(tilt_significant(abs(mh), seh) and np.sign(mh) == np.sign(m) for mh, seh in halves)
+    halves = [_median_and_se(h) for h in (deg[: len(deg) // 2], deg[len(deg) // 2:])]
+    return all(tilt_significant(float(abs(mh)), seh) and np.sign(mh) == np.sign(m) for mh, seh in halves)
 
 
 def effective_sample_size(series: np.ndarray) -> float:
