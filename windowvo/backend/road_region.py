@@ -46,6 +46,7 @@ COARSE_SPAN = 0.35
 FINE_STEPS = 9
 FINE_SPAN = 0.03
 REFINE_ROUNDS = 3  # rounds of the alternating search (direction, length), each on a third of the span
+REMAP_COLS = 16384  # cv2.remap's map is folded into rows of this many points (it takes fewer than SHRT_MAX columns)
 BLUR_SIGMA_PX = 1.0  # the images are smoothed before sampling (the warp's linear interpolation then behaves)
 
 
@@ -142,19 +143,36 @@ class _Warp:
         return uv, front
 
     def correlation(self, s: float) -> tuple[float, int]:
-        uv, front = self.pixels(s)
+        return self.correlations(np.array([s]), self.tn[None])[0], self.n_last
+
+    def correlations(self, ss: np.ndarray, tns: np.ndarray) -> list[float]:
+        """``correlation`` of the lengths ``ss`` (S,), each with its direction's ``t_dir (n . X)`` (``tns``: (S, N, 3)
+        or (1, N, 3) for one direction), in one pass: the same numbers as one call per length, with the numpy and
+        OpenCV work done once for all S (``n_last``: the last one's pixels)."""
+        Xk = self.RX[None] + ss.astype(np.float32)[:, None, None] * tns  # (S, N, 3)
+        front = Xk[..., 2] > 1e-6
+        if self.pinhole:
+            c = self.camera
+            z = np.where(front, Xk[..., 2], np.float32(1.0))
+            uv = np.stack([c.fx * Xk[..., 0] / z + c.cx, c.fy * Xk[..., 1] / z + c.cy], axis=-1).astype(np.float32)
+        else:
+            uv = np.full(Xk.shape[:2] + (2,), -1.0, np.float32)
+            uv[front] = self.camera.project(Xk[front].astype(np.float64))
         u0, u1, v0, v1 = self.bounds
-        inside = front & (uv[:, 0] >= u0) & (uv[:, 0] <= u1) & (uv[:, 1] >= v0) & (uv[:, 1] <= v1)
+        inside = front & (uv[..., 0] >= u0) & (uv[..., 0] <= u1) & (uv[..., 1] >= v0) & (uv[..., 1] <= v1)
         if self.mask1 is not None:  # samples landing on masked pixels of image k are no floor
-            idx = np.nonzero(inside)[0]
+            idx = np.nonzero(inside)
             p = uv[idx] + 0.5
-            inside[idx[self.mask1[p[:, 1].astype(int), p[:, 0].astype(int)] == 0]] = False
-        n = self.n_last = int(inside.sum())
-        if n < self.min_pixels:
-            return -1.0, n
-        m = uv[inside]
-        b = cv2.remap(self.img1, m[:, 0].reshape(1, -1), m[:, 1].reshape(1, -1), cv2.INTER_LINEAR).ravel()
-        return _zncc(self.a[inside], b), n
+            off = self.mask1[p[:, 1].astype(int), p[:, 0].astype(int)] == 0
+            inside[idx[0][off], idx[1][off]] = False
+        counts = inside.sum(axis=1)
+        self.n_last = int(counts[-1])
+        b_all = _remap(self.img1, uv[inside])
+        out, at = [], 0
+        for i, n in enumerate(counts):
+            b, at = b_all[at:at + n], at + n
+            out.append(_zncc(self.a[inside[i]], b) if n >= self.min_pixels else -1.0)
+        return out
 
     def flow_px(self, s: float) -> float:
         """Median displacement of the region's pixels between s = 0 (rotation only) and s."""
@@ -162,6 +180,20 @@ class _Warp:
         uv1, f1 = self.pixels(s)
         ok = f0 & f1
         return float(np.median(np.linalg.norm(uv1[ok] - uv0[ok], axis=1))) if ok.any() else 0.0
+
+
+def _remap(img: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """``img`` sampled (bilinear) at the points ``m`` (M, 2): one ``cv2.remap``, its map folded into rows (remap takes
+    at most SHRT_MAX columns); each point's value is its own, however the map is folded."""
+    n = len(m)
+    if n == 0:
+        return np.zeros(0, np.float32)
+    cols = min(n, REMAP_COLS)
+    rows = -(-n // cols)
+    mx = np.zeros(rows * cols, np.float32)
+    my = np.zeros(rows * cols, np.float32)
+    mx[:n], my[:n] = m[:, 0], m[:, 1]
+    return cv2.remap(img, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR).ravel()[:n]
 
 
 def _parabola_peak(xs: np.ndarray, cs: np.ndarray, i: int) -> float:
@@ -218,19 +250,23 @@ def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadReg
 
     beta = [0.0]  # the sideways turn the warp's direction has now
 
+    def turn(b: float) -> None:
+        if b != beta[0]:
+            warp.set_direction(rot_y(b) @ t_dir)  # about the camera's y axis
+            beta[0] = b
+
     def corr(q: np.ndarray) -> float:
-        if q[1] != beta[0]:
-            warp.set_direction(rot_y(float(q[1])) @ t_dir)  # about the camera's y axis
-            beta[0] = float(q[1])
+        turn(float(q[1]))
         return warp.correlation(float(np.exp(q[0])))[0]
 
     def line(axis: int, span: float, steps: int) -> tuple[float, bool]:
         xs = p[axis] + np.linspace(-span, span, steps)
-        cs = []
-        for x in xs:
-            q = p.copy()
-            q[axis] = x
-            cs.append(corr(q))
+        if axis == 0:  # the lengths, at the direction p has
+            turn(float(p[1]))
+            cs = warp.correlations(np.array([np.exp(x) for x in xs]), warp.tn[None])
+        else:  # the directions, at the length p has
+            tns = np.stack([np.outer(warp.nX, rot_y(float(x)) @ t_dir).astype(np.float32) for x in xs])
+            cs = warp.correlations(np.full(steps, float(np.exp(p[0]))), tns)
         c = np.asarray(cs)
         i = int(np.argmax(c))
         p[axis] = _parabola_peak(xs, c, i)
