@@ -96,3 +96,24 @@ def test_a_far_floor_point_carries_the_floors_tilt_in_its_sigma(camera):
     exact = _model(camera, sigma_tilt_deg=0.0)
     assert exact.range_sigmas_m(own, far) == (own, own)
 
+
+
+def test_the_log_says_first_test_then_again_after_a_disagreement(camera, caplog):
+    """The cue check's log: a first passing test is not "agree again"; agreement after a disagreement is."""
+    import logging
+
+    fm = _model(camera)
+    fm.metric = True
+    caplog.set_level(logging.INFO, logger="windowvo")
+    h = fm.camera_height_m
+    for k in range(1, 13):  # the wheels and the floor agree
+        fm.fit_height_m = h
+        fm.check_cues(k, 0.2, 0.2)
+    assert any("agree at their first test" in r.message for r in caplog.records)
+    assert not any("agree again" in r.message for r in caplog.records)
+    caplog.clear()
+    for k in range(13, 25):  # the floor says 15% more scale, then agrees again
+        fm.fit_height_m = h / 1.15 if k < 19 else h
+        fm.check_cues(k, 0.2, 0.2)
+    messages = [r.message for r in caplog.records]
+    assert any("disagree" in m for m in messages) and any("agree again" in m for m in messages), messages

@@ -161,7 +161,7 @@ class FloorModel:
         estimate (``ground.road_region``), the floor's measurement at a keyframe without a fitted plane."""
         if self.cues is None or not self.ground_active():
             return
-        was_gated = self.cues.floor_gated()
+        was_gated, first = self.cues.floor_gated(), not self.cues.tests
         height = self.fit_height_m if self.fit_height_m is not None else road_height_m
         self.last_agreement = a = self.cues.observe(k, wheel_m, estimate_m, height)
         if a is None:
@@ -171,7 +171,8 @@ class FloorModel:
                         k, 100.0 * a.disagreement, a.chi2, self.cues.threshold,
                         ": floor points are not tied to the floor while they do" if self.cfg.cue_check.gate else "")
         elif was_gated and a.agree:
-            log.info("keyframe %d: floor and wheels agree again (%+.1f%%)", k, 100.0 * a.disagreement)
+            log.info("keyframe %d: floor and wheels agree%s (%+.1f%%)", k, " at their first test" if first else " again",
+                     100.0 * a.disagreement)
 
     def count_ground_factors(self, n_ground: int) -> None:
         """An update's ground factors went into the smoother."""
