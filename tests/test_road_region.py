@@ -263,3 +263,39 @@ def test_a_window_reset_between_measured_steps_keeps_the_run_going(tmp_path, mon
     assert len(after) >= 10, ratios  # measured again after the reset
     assert rep.result.metric and rep.accuracy is not None
     assert rep.accuracy.ate_se3_rmse_m < 0.01 * rep.accuracy.path_length_m
+
+
+class _Floor:
+    """What ``RoadRegion`` reads of the window's floor model: a metric floor at the set-up's height."""
+
+    use_ground = True
+    camera_height_m = HEIGHT
+
+    def ground_active(self) -> bool:
+        return True
+
+    def floor_normal_base(self):
+        return None
+
+    def floor_offset(self, n_base) -> float:
+        return 0.0
+
+
+@pytest.mark.parametrize("most", [None, 40])
+def test_the_region_measures_only_where_the_corners_on_the_floor_are_few(most):
+    """``max_floor_landmarks``: with 40 floor landmarks tied in the window the step is not measured, with 39 it is
+    (null: always)."""
+    from windowvo.backend.road_region import RoadRegion
+
+    cam, tex = _camera(), _texture(6, lane_lines=False)
+    T0, T1 = _step()
+    cfg = BackendConfig(ground={"road_region": {"enabled": True, "max_floor_landmarks": most}})
+    road = RoadRegion(cam, cfg, _Floor(), {4: T0, 5: T1})
+    img0, img1 = _render(cam, T0, tex), _render(cam, T1, tex)
+    for n_tied, measured in ((40, most is None), (39, True)):
+        road.forget()
+        road.after_update(4, img0, None, n_tied)
+        height = road.after_update(5, img1, None, n_tied)
+        assert (height is not None) == measured, (n_tied, most)
+        if measured:
+            assert height == pytest.approx(HEIGHT, rel=0.01)  # the true step: the known height

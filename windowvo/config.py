@@ -247,6 +247,10 @@ class RoadRegionConfig(_Section):
                                         "many degrees sideways of the estimate's, alternately with its length, so that "
                                         "the length does not take up the direction's error (0: the estimate's)")
     sigma_fraction: float = Field(0.03, gt=0, description="sigma of a measured step's length, as a share of it")
+    max_floor_landmarks: int | None = Field(
+        None, ge=0, description="measure a step only while the window holds fewer than this many floor landmarks "
+        "tied to the floor (the corners then tell the floor's scale already, and the region's pixels are the same "
+        "floor's: a room's textured floor). null: every step")
     robust_k: float | None = Field(None, gt=0, description="threshold of the range factor's robust loss (the "
                                    "ground factors' kind) in sigmas; default: the 1-D chi-square quantile of "
                                    "backend.robust_confidence")

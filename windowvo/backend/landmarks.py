@@ -261,6 +261,11 @@ class LandmarkManager:
                 out.append((tid, *lm.ground_factor, p_world))
         return out
 
+    def n_tied_to_floor(self, window_start: int) -> int:
+        """How many landmarks a native ground factor ties to a keyframe still in the window."""
+        return sum(lm.ground_factor is not None and lm.ground_factor[0] >= window_start
+                   for lm in self.landmarks.values())
+
     def position(self, tid: int) -> np.ndarray | None:
         """A landmark's world position in the last estimate (None if it has none)."""
         return self._where.get(tid)

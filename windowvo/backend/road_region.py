@@ -368,15 +368,19 @@ class RoadRegion:
         self.ratio = float("nan")  # the last keyframe's measured step over the estimate's (nan: none)
         self.n_factors = 0  # range factors added to the smoother
 
-    def after_update(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None) -> float | None:
+    def after_update(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None,
+                     n_floor_tied: int = 0) -> float | None:
         """Keyframe k's step measured at the new estimate (its factor goes into the next update). Returns the camera
         height the measurement implies in the estimate's scale (the known height times the estimate's step over the
-        measured one; None: not measured), the floor's measurement for the cue check."""
+        measured one; None: not measured), the floor's measurement for the cue check. ``n_floor_tied``: the floor
+        landmarks the window ties to the floor (``road_region.max_floor_landmarks``)."""
         self.ratio = float("nan")
         if self.cue is None:
             return None
         self.cue.keep_image(k, image, mask)
-        if k == 0 or not self.floor.ground_active() or (k - 1) not in self.kf_pose:
+        most = self.cfg.ground.road_region.max_floor_landmarks
+        if (k == 0 or not self.floor.ground_active() or (k - 1) not in self.kf_pose
+                or (most is not None and n_floor_tied >= most)):
             self.cue.pending = None
             return None
         n = self.floor.floor_normal_base()  # the set-up's base z, or the floor's learnt normal when the floor uses it

@@ -334,7 +334,8 @@ class SlidingWindowBackend:
         self.floor.count_ground_factors(n_ground)
         self._refresh_states()
         lap(Stage.BACKEND_ESTIMATE)
-        road_height = self.road.after_update(k, fo.image, fo.image_mask)
+        n_tied = self.lm.n_tied_to_floor(self.window_start()) if self.road.cue is not None else 0
+        road_height = self.road.after_update(k, fo.image, fo.image_mask, n_tied)
         if k > 0:
             step = np.linalg.norm(self.kf_pose[k][:3, 3] - self.kf_pose[k - 1][:3, 3])
             self.floor.check_cues(k, odom.distance_m if self._odometry_usable(odom) else None, float(step), road_height)
