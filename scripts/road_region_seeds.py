@@ -1,10 +1,11 @@
 """Study (issue #26 item 2): ``backend.ground.road_region`` on rendered sequences the scale suite does not hold.
 
-    python scripts/road_region_seeds.py --work DIR [--jobs 2]
+    python scripts/road_region_seeds.py --work DIR [--jobs 2] [--base K=V ...] [--set K=V ...]
 
 Renders 13 sequences (rooms and warehouses 10 s, streets 8 s, wheels -2% to +2%, seeds 121-123, 221-226, 331-334)
-into DIR and runs each fused and floor only, with and without the floor's region; prints each ATE SE(3) and the
-ratios' geometric mean and worst per scene (docs/scale_suite.md, "The floor measured by region").
+into DIR and runs each fused and floor only, with and without the floor's region (or with the overrides ``--base``
+against ``--set``: two settings compared); prints each ATE SE(3) and the ratios' geometric mean and worst per scene
+(docs/scale_suite.md, "The floor measured by region").
 """
 
 from __future__ import annotations
@@ -25,9 +26,14 @@ CASES = ([("warehouse", p, s, sc, 0.004) for p, s, sc in [("loop", 221, 0.01), (
                                                         ("straight", 123, 0.01)]])
 
 
-def run_case(args: tuple[Path, tuple[str, str, int, float, float]]) -> tuple[str, list[float]]:
-    """ATE SE(3) of (fused off, fused on, floor off, floor on)."""
-    work, (scene, path, seed, scale, yaw) = args
+OFF = ("backend.ground.road_region.enabled=false",)
+ON = ("backend.ground.road_region.enabled=true",)
+
+
+def run_case(args: tuple[Path, tuple[str, str, int, float, float], tuple[str, ...], tuple[str, ...]]
+             ) -> tuple[str, list[float]]:
+    """ATE SE(3) of (fused base, fused set, floor base, floor set)."""
+    work, (scene, path, seed, scale, yaw), base, new = args
     logging.disable(logging.WARNING)
     from windowvo.config import config_from_dict
     from windowvo.runtime.job import run_job
@@ -40,9 +46,8 @@ def run_case(args: tuple[Path, tuple[str, str, int, float, float]]) -> tuple[str
     case = ss.ScaleCase(f"{scene}_{path}_{seed}", scene, spec)
     ates = []
     for way in ("fused", "floor"):
-        for on in (False, True):
-            data = ss.case_config(case, work, work / "out" / f"region_{on}", way,
-                                  (f"backend.ground.road_region.enabled={str(on).lower()}",))
+        for arm, overrides in (("base", base), ("set", new)):
+            data = ss.case_config(case, work, work / "out" / arm, way, overrides)
             rep = run_job(config_from_dict(data))
             ates.append(rep.accuracy.ate_se3_rmse_m if rep.accuracy is not None else float("nan"))
     return case.name, ates
@@ -52,6 +57,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, required=True, help="folder for the renders and the runs")
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--base", action="append", metavar="K=V", help="the first setting's overrides (repeatable; "
+                    "default: the region off)")
+    ap.add_argument("--set", action="append", metavar="K=V", help="the second's (default: the region on)")
     args = ap.parse_args()
     try:
         args.work.mkdir(parents=True, exist_ok=True)
@@ -59,7 +67,8 @@ def main() -> int:
         print(f"road_region_seeds.py: error: cannot use {args.work}: {err.strerror}", file=sys.stderr)
         return 2
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
-        results = list(ex.map(run_case, [(args.work, c) for c in CASES]))
+        base, new = tuple(args.base or OFF), tuple(args.set or ON)
+        results = list(ex.map(run_case, [(args.work, c, base, new) for c in CASES]))
     for name, (f0, f1, g0, g1) in results:
         print(f"{name:28s} fused {f0:.3f} -> {f1:.3f} ({f1 / f0:.2f}x)  floor only {g0:.3f} -> {g1:.3f} "
               f"({g1 / g0:.2f}x)")

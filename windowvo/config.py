@@ -230,13 +230,16 @@ class RoadRegionConfig(_Section):
     enabled: bool = Field(False, description="measure each keyframe step's length by aligning the floor region of "
                           "the two keyframes' images through the floor's homography (the estimate's rotation and "
                           "direction, the camera height), tied as a range factor between their poses; for floors "
-                          "with few corners (a road, a plain warehouse floor). Off by default (docs/scale_suite.md)")
+                          "with few corners (a road, a plain warehouse floor), with ground.mount_from_motion. Off "
+                          "by default: with both, KITTI 01 with wheels +1% or +2% gets 1.8-2.5x worse "
+                          "(docs/scale_suite.md)")
     near_heights: float = Field(2.0, gt=0, description="the region's near edge ahead of the camera, in camera heights")
     far_heights: float = Field(6.0, gt=0, description="its far edge, in camera heights")
     half_width_heights: float = Field(1.0, gt=0, description="its half width beside the optical axis, in camera "
                                       "heights")
     step_px: int = Field(2, ge=1, le=16, description="the region's pixels are sampled every this many pixels")
-    max_pixels: int = Field(6000, ge=100, description="at most this many sampled pixels (an even subsample)")
+    max_pixels: int = Field(2000, ge=100, description="at most this many sampled pixels (an even subsample; the "
+                            "search's time is mostly per pixel: 6000 take about twice 2000's)")
     min_pixels: int = Field(300, ge=20, description="a step is measured only with at least this many region pixels "
                             "in both images")
     min_flow_px: float = Field(2.0, ge=0, description="... and when the step moves the region's pixels this far "
@@ -248,9 +251,9 @@ class RoadRegionConfig(_Section):
                                         "the length does not take up the direction's error (0: the estimate's)")
     sigma_fraction: float = Field(0.03, gt=0, description="sigma of a measured step's length, as a share of it")
     max_floor_landmarks: int | None = Field(
-        None, ge=0, description="measure a step only while the window holds fewer than this many floor landmarks "
+        50, ge=1, description="measure a step only while the window holds fewer than this many floor landmarks "
         "tied to the floor (the corners then tell the floor's scale already, and the region's pixels are the same "
-        "floor's: a room's textured floor). null: every step")
+        "floor's: a room's textured floor; a road's fused run ties none). null: every step")
     robust_k: float | None = Field(None, gt=0, description="threshold of the range factor's robust loss (the "
                                    "ground factors' kind) in sigmas; default: the 1-D chi-square quantile of "
                                    "backend.robust_confidence")

@@ -156,9 +156,8 @@ class FloorModel:
         return not self.waiting_for_floor() and not (self.cues is not None and self.cues.floor_gated())
 
     def check_cues(self, k: int, wheel_m: float | None, estimate_m: float, road_height_m: float | None = None) -> None:
-        """Keyframe k's test of floor against wheels (``cue_check.py``), after its update; says when a
-        disagreement starts and ends. ``road_height_m``: the camera height the floor's region implies in the
-        estimate (``ground.road_region``), the floor's measurement at a keyframe without a fitted plane."""
+        """Keyframe k's test of floor against wheels (``cue_check.py``) after its update; logs when a disagreement
+        starts and ends. ``road_height_m``: the camera height the region implies where no plane was fitted."""
         if self.cues is None or not self.ground_active():
             return
         was_gated, first = self.cues.floor_gated(), not self.cues.tests
@@ -171,7 +170,7 @@ class FloorModel:
                         k, 100.0 * a.disagreement, a.chi2, self.cues.threshold,
                         ": floor points are not tied to the floor while they do" if self.cfg.cue_check.gate else "")
         elif was_gated and a.agree:
-            log.info("keyframe %d: floor and wheels agree%s (%+.1f%%)", k, " at their first test" if first else " again",
+            log.info("keyframe %d: floor and wheels agree %s (%+.1f%%)", k, "at their first test" if first else "again",
                      100.0 * a.disagreement)
 
     def count_ground_factors(self, n_ground: int) -> None:
