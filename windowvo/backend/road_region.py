@@ -130,15 +130,18 @@ class _Warp:
         self.tn = np.outer(self.nX, t_dir).astype(np.float32)  # t_dir (n . X) per point: s times it is the translation
 
     def pixels(self, s: float) -> tuple[np.ndarray, np.ndarray]:
-        Xk = self.RX + np.float32(s) * self.tn  # R X + s t_dir (n . X), and n . X = h: R X + t
-        front = Xk[:, 2] > 1e-6
+        return self._project(self.RX + np.float32(s) * self.tn)  # R X + s t_dir (n . X), and n . X = h: R X + t
+
+    def _project(self, Xk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (..., 2) of the points ``Xk`` (..., 3) in camera k, and which lie in front (-1 where not)."""
+        front = Xk[..., 2] > 1e-6
         if self.pinhole:
             c = self.camera
-            z = np.where(front, Xk[:, 2], np.float32(1.0))
-            uv = np.stack([c.fx * Xk[:, 0] / z + c.cx, c.fy * Xk[:, 1] / z + c.cy], axis=1).astype(np.float32)
+            z = np.where(front, Xk[..., 2], np.float32(1.0))
+            uv = np.stack([c.fx * Xk[..., 0] / z + c.cx, c.fy * Xk[..., 1] / z + c.cy], axis=-1).astype(np.float32)
             uv[~front] = -1.0
             return uv, front
-        uv = np.full((len(Xk), 2), -1.0, np.float32)
+        uv = np.full(Xk.shape[:-1] + (2,), -1.0, np.float32)
         uv[front] = self.camera.project(Xk[front].astype(np.float64))
         return uv, front
 
@@ -149,15 +152,7 @@ class _Warp:
         """``correlation`` of the lengths ``ss`` (S,), each with its direction's ``t_dir (n . X)`` (``tns``: (S, N, 3)
         or (1, N, 3) for one direction), in one pass: the same numbers as one call per length, with the numpy and
         OpenCV work done once for all S (``n_last``: the last one's pixels)."""
-        Xk = self.RX[None] + ss.astype(np.float32)[:, None, None] * tns  # (S, N, 3)
-        front = Xk[..., 2] > 1e-6
-        if self.pinhole:
-            c = self.camera
-            z = np.where(front, Xk[..., 2], np.float32(1.0))
-            uv = np.stack([c.fx * Xk[..., 0] / z + c.cx, c.fy * Xk[..., 1] / z + c.cy], axis=-1).astype(np.float32)
-        else:
-            uv = np.full(Xk.shape[:2] + (2,), -1.0, np.float32)
-            uv[front] = self.camera.project(Xk[front].astype(np.float64))
+        uv, front = self._project(self.RX[None] + ss.astype(np.float32)[:, None, None] * tns)  # (S, N, ...)
         u0, u1, v0, v1 = self.bounds
         inside = front & (uv[..., 0] >= u0) & (uv[..., 0] <= u1) & (uv[..., 1] >= v0) & (uv[..., 1] <= v1)
         if self.mask1 is not None:  # samples landing on masked pixels of image k are no floor
@@ -354,8 +349,9 @@ class RoadRegionCue:
 
 class RoadRegion:
     """``ground.road_region`` in the back end (``SlidingWindowBackend``): after each update, the new step measured at
-    the estimate (``after_update``); before the next, its range factor (``add_factor``), while both poses are in the
-    window and the floor may be tied (``FloorModel.ties_allowed``: with wheels, floor and wheels tested and agreeing,
+    the estimate (``after_update``; not while the window ties ``max_floor_landmarks`` floor landmarks: the corners tell
+    the floor then); before the next, its range factor (``add_factor``), while both poses are in the window and the
+    floor may be tied (``FloorModel.ties_allowed``: with wheels, floor and wheels tested and agreeing,
     as for the floor's corners). Off (``ground.road_region.enabled`` false, or no ground cue): every call does
     nothing."""
 
