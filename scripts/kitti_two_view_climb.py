@@ -79,15 +79,36 @@ def study(folder: Path, gap: int) -> dict[str, list[float]]:
     return errors
 
 
+def excerpt_problem(folder: Path, gap: int) -> str | None:
+    """Why ``folder`` is no KITTI excerpt this study can read (None: it is)."""
+    if not (folder / "calib.txt").is_file() or not (folder / "poses.txt").is_file():
+        return "no calib.txt and poses.txt (a KITTI excerpt)"
+    try:
+        n = len(np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4))
+    except ValueError as err:
+        return f"poses.txt is not 12 numbers a line ({err})"
+    if n <= gap:
+        return f"{n} poses: no two frames {gap} apart"
+    missing = [i for i in range(n) if not (folder / "image_0" / f"{i:06d}.png").is_file()]
+    if missing:
+        return f"image_0/{missing[0]:06d}.png is missing ({len(missing)} of {n} frames)"
+    unreadable = [i for i in range(n) if cv2.imread(str(folder / "image_0" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE)
+                  is None]
+    return f"image_0/{unreadable[0]:06d}.png cannot be decoded" if unreadable else None
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("folders", nargs="+", type=Path, help="KITTI excerpts (image_0/, calib.txt, poses.txt)")
     p.add_argument("--gap", type=int, default=1, help="frames between the two views (default 1)")
     a = p.parse_args(argv)
+    if a.gap < 1:
+        print(f"kitti_two_view_climb: error: --gap must be at least 1 (got {a.gap})", file=sys.stderr)
+        return 2
     for folder in a.folders:
-        if not (folder / "calib.txt").is_file() or not (folder / "poses.txt").is_file():
-            print(f"kitti_two_view_climb: error: {folder} holds no calib.txt and poses.txt (a KITTI excerpt)",
-                  file=sys.stderr)
+        problem = excerpt_problem(folder, a.gap)
+        if problem:
+            print(f"kitti_two_view_climb: error: {folder}: {problem}", file=sys.stderr)
             return 2
         print(f"{folder.name}: climb of each step, two-view estimate less ground truth's (deg), frames {a.gap} apart")
         for name, errs in study(folder, a.gap).items():

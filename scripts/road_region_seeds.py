@@ -66,8 +66,18 @@ def main() -> int:
     except OSError as err:
         print(f"road_region_seeds.py: error: cannot use {args.work}: {err.strerror}", file=sys.stderr)
         return 2
+    base, new = tuple(args.base or OFF), tuple(args.set or ON)
+    from windowvo.config import apply_overrides, config_from_dict
+    from windowvo.errors import WindowVOError
+
+    for overrides in (base, new):  # refused here, in one line, not in a worker after the renders
+        try:
+            config_from_dict(apply_overrides({"sequence": str(args.work), "output": str(args.work / "check")},
+                                             list(overrides)))
+        except WindowVOError as err:
+            print(f"road_region_seeds.py: error: {err}", file=sys.stderr)
+            return 2
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
-        base, new = tuple(args.base or OFF), tuple(args.set or ON)
         results = list(ex.map(run_case, [(args.work, c, base, new) for c in CASES]))
     for name, (f0, f1, g0, g1) in results:
         print(f"{name:28s} fused {f0:.3f} -> {f1:.3f} ({f1 / f0:.2f}x)  floor only {g0:.3f} -> {g1:.3f} "
