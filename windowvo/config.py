@@ -249,6 +249,25 @@ class RoadRegionConfig(_Section):
     search_direction_deg: float = Field(1.5, ge=0, lt=20, description="the step's direction is searched within this "
                                         "many degrees sideways of the estimate's, alternately with its length, so that "
                                         "the length does not take up the direction's error (0: the estimate's)")
+    pitch_search_deg: float = Field(2.0, ge=0, lt=10, description="the floor's pitch against the camera is searched "
+                                    "within this many degrees of the assumed one (the floor's learnt normal or the "
+                                    "set-up's), jointly with the length: a road's slope ahead differs from the slope "
+                                    "under the wheels, and a degree of it is 9% of length on a car's camera (0: the "
+                                    "assumed pitch)")
+    pitch_far_heights: float = Field(10.0, gt=0, description="the far edge of the region the pitch is searched on, in "
+                                     "camera heights (the pitch shows in how the floor's image motion changes from the "
+                                     "near rows to the far ones: the farther, the better; the length is measured on "
+                                     "far_heights, where the floor is better resolved)")
+    pitch_window: int = Field(15, ge=1, description="the floor's pitch a step is measured on: the median of the "
+                              "pitches the last this many steps found (a camera's pitch against the road changes "
+                              "slowly; one step's is loose along its ridge with the length), the length searched "
+                              "again on it; 1: each step's own, with the length of its joint search")
+    pitch_sigmas: float = Field(3.0, ge=0, description="with pitch_window above 1, the pooled pitch (the median) is "
+                                "used once it lies this many standard errors (from the searches' spread) from the "
+                                "assumed one, with 5 searches at least; until then the assumed pitch")
+    pitch_every: int = Field(1, ge=1, description="with pitch_window above 1, the pitch is searched at every this many "
+                             "steps only (the search costs about four times the length's alone); the steps between are "
+                             "measured on the pooled pitch")
     sigma_fraction: float = Field(0.03, gt=0, description="sigma of a measured step's length, as a share of it")
     max_floor_landmarks: int | None = Field(
         50, ge=1, description="measure a step only while the window holds fewer than this many floor landmarks "
@@ -368,9 +387,10 @@ class GroundConfig(_Section):
     @model_validator(mode="after")
     def _road_region_ahead(self):
         r = self.road_region
-        if r.far_heights <= r.near_heights:
-            raise ValueError(f"road_region.far_heights ({r.far_heights}) must be beyond near_heights "
-                             f"({r.near_heights})")
+        for name in ("far_heights", "pitch_far_heights"):
+            if getattr(r, name) <= r.near_heights:
+                raise ValueError(f"road_region.{name} ({getattr(r, name)}) must be beyond near_heights "
+                                 f"({r.near_heights})")
         return self
 
 

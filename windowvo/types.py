@@ -151,8 +151,10 @@ class BackendOutput:
     # keyframes (nan: not tested), and whether the chi-square test found them agreeing (None: not tested).
     cue_disagreement: float = float("nan")
     cues_agree: bool | None = None
-    # ground.road_region: this keyframe's step length measured by the floor's region over the estimate's (nan: none).
+    # ground.road_region: this keyframe's step length measured by the floor's region over the estimate's (nan: none),
+    # and the floor's pitch against the assumed one it was measured on (road_region.pitch_search_deg; nan: none).
     road_step_ratio: float = float("nan")
+    road_pitch_deg: float = float("nan")
     # Keyframes before the window whose poses this update changed (frame index -> T_world_base): every one at a
     # monocular run's late metric start, when the floor first came into view and the trajectory was rescaled.
     earlier_keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)
@@ -217,6 +219,7 @@ class FrameRecord:
     cues_agree: bool | None = None  # the chi-square test of floor against wheels (None: not tested)
     wheel_yaw_scale: float = float("nan")  # online wheel calibration's yaw scale (nan: not estimated)
     road_step_ratio: float = float("nan")  # the step's length by the floor's region over the estimate's (nan: none)
+    road_pitch_deg: float = float("nan")  # the floor's pitch against the assumed one it was measured on (nan: none)
 
 
 @dataclass

@@ -12,14 +12,18 @@ unknown the estimate leaves; ``scripts/road_homography_study.py`` measured the b
 excerpts). The back end ties it to the keyframes' base poses with a range factor (``range_factor``).
 
 What the measurement assumes, and so what its sigma says: the region is floor (a car parked in it, a kerb beside
-it: the correlation drops, the robust loss and the correlation threshold take it out), and the floor's attitude
-against the camera is known. The last one is its bias: the region's rays meet the floor at grazing angles, so a
-tilt error ``da`` moves ``s`` by about ``da / tan(depression)`` (9% a degree with a car's camera looking 6-10 m ahead).
-The normal is the floor's learnt one (``FloorAttitude``: a mount pitched against ``T_base_cam``) when known, else the
-set-up's (the base's z axis: a rocking base's tilt between keyframes is not applied; the estimate's attitude
-against the world, measured as the alternative, drifts by tenths of a degree on a long street and biased the steps
-by 2.6%). A step's sigma is ``sigma_fraction`` of its length. Masked pixels (``frontend`` masks: a bonnet, the
-robot's own body) are left out of the region in both images.
+it: the correlation drops, the robust loss and the correlation threshold take it out), and the floor is a plane
+whose height under the camera is the known one. Its attitude against the camera is not assumed: the region's rays
+meet the floor at grazing angles, so a pitch error ``da`` moves ``s`` by about ``da / tan(depression)`` (9% a degree
+with a car's camera looking 6-10 m ahead), and a real road's slope in front of the car differs from the slope under
+its wheels by a degree and more (KITTI 01's first 50 frames: 1.2-1.7 deg by stereo). So each step searches the
+floor's pitch about the camera's x axis too (``pitch_search_deg`` either side of the assumed normal), jointly with
+the length on one grid: the two trade along a ridge (a longer step on a floor pitched further down), which only the
+change of the floor's image motion from the region's near rows to its far ones separates, hence a region reaching
+``pitch_far_heights`` (10) camera heights ahead. The assumed normal is the floor's learnt one (``FloorAttitude``: a mount
+pitched against ``T_base_cam``) when known, else the set-up's (the base's z axis: a rocking base's tilt between
+keyframes is not applied). A step's sigma is ``sigma_fraction`` of its length. Masked pixels (``frontend`` masks: a
+bonnet, the robot's own body) are left out of the region in both images.
 
 The measurement (``measure_step``, ``RoadRegionCue``: which images, which step) is numpy and OpenCV, tested on its own
 (``tests/test_road_region.py``); ``RoadRegion`` is the smoother's side (when to measure, when its range factor may go
@@ -28,14 +32,16 @@ in), and ``range_factor`` the one GTSAM factor.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from collections import deque
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
 from ..camera import CameraModel
 from ..config import BackendConfig, RoadRegionConfig
-from ..geometry import rot_y
+from ..geometry import rot_x, rot_y
 
 # The search (``_search``): a coarse grid of COARSE_STEPS lengths over +-COARSE_SPAN (log) around the estimate's step,
 # a parabola through the best one and its neighbours, then REFINE_ROUNDS rounds of the direction's sideways angle
@@ -46,6 +52,10 @@ COARSE_SPAN = 0.35
 FINE_STEPS = 9
 FINE_SPAN = 0.03
 REFINE_ROUNDS = 3  # rounds of the alternating search (direction, length), each on a third of the span
+# With the floor's pitch searched: REFINE_ROUNDS + 1 rounds of the direction and a FINE_STEPS x FINE_STEPS grid of the
+# length and the pitch, the length's span at least PITCH_LENGTH_SPAN (log units) per radian of the pitch's span (the
+# ridge along which they trade: about 9% of length a degree on a car's camera).
+PITCH_LENGTH_SPAN = 12.0
 REMAP_COLS = 16384  # cv2.remap's map is folded into rows of this many points (it takes fewer than SHRT_MAX columns)
 BLUR_SIGMA_PX = 1.0  # the images are smoothed before sampling (the warp's linear interpolation then behaves)
 
@@ -60,6 +70,18 @@ class RoadStep:
     estimate_camera_m: float  # the estimate's camera distance when measured
     correlation: float  # at the best scale
     n_pixels: int
+    pitch_deg: float = 0.0  # the floor's pitch the step found against the assumed normal (camera x axis)
+
+
+@dataclass(frozen=True)
+class StepFit:
+    """``measure_step``'s answer: the cameras' distance, the alignment's correlation at it, the region pixels it used
+    and the floor's pitch it found (about the camera's x axis, against the assumed normal; 0 when not searched)."""
+
+    camera_m: float
+    correlation: float
+    n_pixels: int
+    pitch_deg: float = 0.0
 
 
 def floor_in_camera(T_base_cam: np.ndarray, n_base: np.ndarray, floor_offset: float) -> tuple[np.ndarray, float]:
@@ -119,6 +141,7 @@ class _Warp:
         self.camera, self.img1, self.mask1 = camera, img1, mask1
         self.pinhole = not camera.has_distortion
         self.a = img0[uv0[:, 1], uv0[:, 0]].astype(np.float32)
+        self.X0, self.R, self.h, self.n_cam = X0, R, h, n_cam  # the region's points on the assumed floor, camera k-1
         self.RX = (X0 @ R.T).astype(np.float32)  # (R X) for each floor point, camera k
         self.nX = (X0 @ n_cam).astype(np.float32)  # n . X for each point (h on the floor)
         self.set_direction(t_dir)
@@ -128,6 +151,13 @@ class _Warp:
 
     def set_direction(self, t_dir: np.ndarray) -> None:
         self.tn = np.outer(self.nX, t_dir).astype(np.float32)  # t_dir (n . X) per point: s times it is the translation
+
+    def on_plane(self, n: np.ndarray, t_dir: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(R X, t_dir (n . X))`` (N, 3) each for the region's rays met on the floor ``n . X = h`` instead of the
+        assumed one: the points of camera k at length s are the first plus s times the second."""
+        d = self.X0 @ n
+        X = self.X0 * (self.h / np.where(d > 1e-9, d, 1e-9))[:, None]
+        return (X @ self.R.T).astype(np.float32), np.outer(X @ n, t_dir).astype(np.float32)
 
     def pixels(self, s: float) -> tuple[np.ndarray, np.ndarray]:
         return self._project(self.RX + np.float32(s) * self.tn)  # R X + s t_dir (n . X), and n . X = h: R X + t
@@ -152,7 +182,11 @@ class _Warp:
         """``correlation`` of the lengths ``ss`` (S,), each with its direction's ``t_dir (n . X)`` (``tns``: (S, N, 3)
         or (1, N, 3) for one direction), in one pass: the same numbers as one call per length, with the numpy and
         OpenCV work done once for all S (``n_last``: the last one's pixels)."""
-        uv, front = self._project(self.RX[None] + ss.astype(np.float32)[:, None, None] * tns)  # (S, N, ...)
+        return self.correlations_of(self.RX[None] + ss.astype(np.float32)[:, None, None] * tns)
+
+    def correlations_of(self, Xk: np.ndarray) -> list[float]:
+        """The correlation of each of S candidate warps, given as the region's points in camera k (S, N, 3)."""
+        uv, front = self._project(Xk)  # (S, N, ...)
         u0, u1, v0, v1 = self.bounds
         inside = front & (uv[..., 0] >= u0) & (uv[..., 0] <= u1) & (uv[..., 1] >= v0) & (uv[..., 1] <= v1)
         if self.mask1 is not None:  # samples landing on masked pixels of image k are no floor
@@ -206,17 +240,17 @@ def _parabola_peak(xs: np.ndarray, cs: np.ndarray, i: int) -> float:
 def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_world_cam0: np.ndarray,
                  T_world_cam1: np.ndarray, n_cam: np.ndarray, h: float, cfg: RoadRegionConfig,
                  grid: tuple[np.ndarray, np.ndarray] | None = None,
-                 masks: tuple[np.ndarray | None, np.ndarray | None] = (None, None)) -> tuple[float, float, int] | None:
+                 masks: tuple[np.ndarray | None, np.ndarray | None] = (None, None)) -> StepFit | None:
     """The camera step's metric length from the floor region (``img0``/``img1``: ``smoothed`` images of the two
-    keyframes; the poses give the rotation and the direction).
+    keyframes; the poses give the rotation and the direction; ``n_cam``, ``h``: the assumed floor in camera k-1).
 
     The estimate's direction is not exact, and a sideways error of it shifts the floor's pixels sideways by an
     amount that grows with the length: a road's lane lines make that costly, so a shorter step would win (10% on a
     curve for a direction 0.6 deg off). The direction's sideways angle is searched too (``search_direction_deg``),
     alternately with the length: it moves the pixels across the image, the length along their rays, so the two
-    separate. Returns ``(length m, correlation, pixels)``, or None when the floor region does not measure it: too
-    few pixels, too little motion of the floor in the image, the correlation below ``min_correlation``, or the
-    length's peak at the edge of its search."""
+    separate. The floor's pitch is searched with the length (``pitch_search_deg``; the module's docstring). Returns
+    the fit, or None when the floor region does not measure it: too few pixels, too little motion of the floor in
+    the image, the correlation below ``min_correlation``, or the length's peak at the edge of its search."""
     T_c1_c0 = np.linalg.inv(T_world_cam1) @ T_world_cam0
     R, t = T_c1_c0[:3, :3], T_c1_c0[:3, 3]
     d_est = float(np.linalg.norm(t))
@@ -233,13 +267,14 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
     s_est = d_est / h
     if warp.flow_px(s_est) < cfg.min_flow_px:
         return None
+    if cfg.pitch_search_deg > 0:
+        return _search_with_pitch(warp, t_dir, s_est, h, cfg)
     return _search(warp, t_dir, s_est, h, cfg)
 
 
-def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig
-            ) -> tuple[float, float, int] | None:
-    """``measure_step``'s search: a coarse grid of the length around the estimate's, then rounds of the direction's
-    sideways angle and the length, each on a third of the last span."""
+def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig) -> StepFit | None:
+    """``measure_step``'s search on the assumed floor: a coarse grid of the length around the estimate's, then rounds
+    of the direction's sideways angle and the length, each on a third of the last span."""
     # p = [log s, sideways turn of the direction]
     p = np.array([np.log(s_est), 0.0])
 
@@ -280,7 +315,69 @@ def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadReg
     c_best = corr(p)
     if not inside or c_best < cfg.min_correlation:
         return None
-    return float(np.exp(p[0])) * h, c_best, warp.n_last
+    return StepFit(float(np.exp(p[0])) * h, c_best, warp.n_last)
+
+
+def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig
+                       ) -> StepFit | None:
+    """``measure_step``'s search with the floor's pitch: a coarse grid of the length on the assumed floor, then rounds
+    of the direction's sideways angle (a line) and of the length and the pitch together (a grid: they trade along a
+    ridge, on which alternating lines would crawl), each on a third of the last span (the pitch's only once its peak
+    lies inside its grid). As on the assumed floor, the length's peak must lie inside its last grid."""
+    p = np.array([np.log(s_est), 0.0, 0.0])  # log s, the direction's sideways turn, the floor's pitch (rad)
+
+    def plane(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return warp.on_plane(rot_x(float(q[2])) @ warp.n_cam, rot_y(float(q[1])) @ t_dir)
+
+    def points(q: np.ndarray) -> np.ndarray:
+        RX, tn = plane(q)
+        return RX + np.float32(np.exp(q[0])) * tn
+
+    def pick(xs: np.ndarray, c: np.ndarray, axis: int) -> tuple[float, bool]:
+        i = int(np.argmax(c))
+        p[axis] = _parabola_peak(xs, c, i)
+        return float(c[i]), 0 < i < len(xs) - 1
+
+    def lengths(span: float, steps: int) -> tuple[float, bool]:
+        xs = p[0] + np.linspace(-span, span, steps)
+        RX, tn = plane(p)
+        return pick(xs, np.asarray(warp.correlations_of(RX[None] + np.exp(xs).astype(np.float32)[:, None, None]
+                                                         * tn[None])), 0)
+
+    def directions(span: float, steps: int) -> None:
+        xs = p[1] + np.linspace(-span, span, steps)
+        pick(xs, np.asarray(warp.correlations_of(np.stack([points(np.array([p[0], x, p[2]])) for x in xs]))), 1)
+
+    def lengths_and_pitches(span_s: float, span_t: float, steps: int) -> tuple[float, bool, bool]:
+        ls = p[0] + np.linspace(-span_s, span_s, steps)
+        ts = p[2] + np.linspace(-span_t, span_t, steps)
+        Xk = []
+        for t in ts:
+            RX, tn = plane(np.array([p[0], p[1], t]))
+            Xk.append(RX[None] + np.exp(ls).astype(np.float32)[:, None, None] * tn[None])
+        c = np.asarray(warp.correlations_of(np.concatenate(Xk))).reshape(steps, steps)  # [pitch, length]
+        it, il = (int(i) for i in np.unravel_index(int(np.argmax(c)), c.shape))
+        p[0] = _parabola_peak(ls, c[it], il)
+        p[2] = _parabola_peak(ts, c[:, il], it)
+        return float(c[it, il]), 0 < il < steps - 1, 0 < it < steps - 1
+
+    c, inside = lengths(COARSE_SPAN, COARSE_STEPS)
+    if not inside or c < cfg.min_correlation:
+        return None
+    span_dir, span_t = float(np.radians(cfg.search_direction_deg)), float(np.radians(cfg.pitch_search_deg))
+    span_s = max(3 * FINE_SPAN, PITCH_LENGTH_SPAN * span_t)
+    for _ in range(REFINE_ROUNDS + 1):
+        if span_dir > 0:
+            directions(span_dir, FINE_STEPS)
+            span_dir /= 3.0
+        c, inside, pitch_inside = lengths_and_pitches(span_s, span_t, FINE_STEPS)
+        span_s /= 3.0
+        if pitch_inside:  # a pitch at the grid's edge keeps its span: the next grid, centred there, goes on
+            span_t /= 3.0
+    c_best = warp.correlations_of(points(p)[None])[0]
+    if not inside or c_best < cfg.min_correlation:
+        return None
+    return StepFit(float(np.exp(p[0])) * h, c_best, warp.n_last, float(np.degrees(p[2])))
 
 
 def base_distance(T_base_cam: np.ndarray, T_world_cam0: np.ndarray, T_world_cam1: np.ndarray,
@@ -305,6 +402,22 @@ def range_factor(key0: int, key1: int, base_m: float, sigma_m: float, robust_kin
     return gtsam.RangeFactorPose3(key0, key1, float(base_m), noise)
 
 
+MIN_PITCH_SEARCHES = 5  # the pooled pitch is tested only once this many searches found one
+
+
+def pooled_pitch(pitches: list[float], sigmas: float) -> float:
+    """The floor's pitch against the assumed one that the steps' searches tell together: their median, when it lies
+    ``sigmas`` standard errors from 0 (the median's, 1.2533 x 1.4826 x MAD / sqrt(n), from the searches' own
+    spread) with at least MIN_PITCH_SEARCHES of them; else 0, the assumed floor (one search's pitch is loose along
+    its ridge with the length: a camera at its set-up's pitch keeps the set-up's)."""
+    p = np.asarray(pitches, float)
+    if len(p) < MIN_PITCH_SEARCHES:
+        return 0.0
+    med = float(np.median(p))
+    se = 1.2533 * 1.4826 * float(np.median(np.abs(p - med))) / math.sqrt(len(p))
+    return med if abs(med) > sigmas * se else 0.0
+
+
 class RoadRegionCue:
     """The back end's side: keeps the last keyframe's image, measures each step once the window has estimated it,
     and hands its range factor to the next update (both poses are still in the window then)."""
@@ -316,6 +429,13 @@ class RoadRegionCue:
         self._image: tuple[int, np.ndarray, np.ndarray | None] | None = None
         self._previous: tuple[int, np.ndarray, np.ndarray | None] | None = None
         self.pending: RoadStep | None = None  # measured, its factor not yet in the smoother
+        # The floor's pitch the searches of the last pitch_window steps found (one every pitch_every steps), against
+        # the assumed normal they were searched from
+        self.pitches: deque[float] = deque(maxlen=max(1, -(-cfg.pitch_window // cfg.pitch_every)))
+        self._pitch_from: np.ndarray | None = None
+        self._steps_since_search = 0
+        self._pitch_search = cfg.model_copy(update={"far_heights": cfg.pitch_far_heights})  # the pitch's region
+        self._on_pitch = cfg.model_copy(update={"pitch_search_deg": 0.0})  # a step's length on the pooled pitch
 
     def keep_image(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None) -> None:
         """Keyframe k's image (grey, as measured) and its usable pixels (0: masked; None: all); no image: the step
@@ -332,15 +452,40 @@ class RoadRegionCue:
             return None
         T_wc0, T_wc1 = T_world_base0 @ self.T_base_cam, T_world_base1 @ self.T_base_cam
         n_cam, h = floor_in_camera(self.T_base_cam, n_base, floor_offset)
-        got = measure_step(self.camera, self._previous[1], self._image[1], T_wc0, T_wc1, n_cam, h, self.cfg, self.grid,
-                           (self._previous[2], self._image[2]))
-        if got is None:
+        fit = self._fit(self._previous[1], self._image[1], T_wc0, T_wc1, n_cam, h, (self._previous[2], self._image[2]))
+        if fit is None:
             return None
-        camera_m, corr, n = got
-        step = RoadStep(k, camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, camera_m),
-                        float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])), corr, n)
+        step = RoadStep(k, fit.camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, fit.camera_m),
+                        float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])), fit.correlation, fit.n_pixels, fit.pitch_deg)
         self.pending = step
         return step
+
+    def _fit(self, img0: np.ndarray, img1: np.ndarray, T_wc0: np.ndarray, T_wc1: np.ndarray, n_cam: np.ndarray,
+             h: float, masks: tuple[np.ndarray | None, np.ndarray | None]) -> StepFit | None:
+        """The step's fit: its own (``pitch_window`` 1, or the pitch not searched), or its length searched again on
+        the pitch pooled over the last ``pitch_window`` steps (the median of the pitches searched at every
+        ``pitch_every``-th step; a change of the assumed normal, the floor's attitude learnt, starts the pool over)."""
+        c = self.cfg
+        if c.pitch_search_deg <= 0:
+            return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, c, self.grid, masks)
+        if c.pitch_window <= 1:
+            return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks)
+        if self._pitch_from is None or float(n_cam @ self._pitch_from) < math.cos(1e-3):
+            self.pitches.clear()
+            self._pitch_from = n_cam
+        if not self.pitches or self._steps_since_search >= c.pitch_every - 1:
+            self._steps_since_search = 0
+            fit = measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks)
+            if fit is not None:
+                self.pitches.append(fit.pitch_deg)
+        else:
+            self._steps_since_search += 1
+        if not self.pitches:
+            return None
+        pooled = pooled_pitch(list(self.pitches), c.pitch_sigmas)
+        on = measure_step(self.camera, img0, img1, T_wc0, T_wc1, rot_x(np.radians(pooled)) @ n_cam, h,
+                          self._on_pitch, self.grid, masks)
+        return None if on is None else replace(on, pitch_deg=pooled)
 
     def take_pending(self) -> RoadStep | None:
         step, self.pending = self.pending, None
@@ -362,6 +507,7 @@ class RoadRegion:
         on = cfg.ground.road_region.enabled and floor.use_ground
         self.cue = RoadRegionCue(camera, cfg.ground.road_region, camera.T_base_cam) if on else None
         self.ratio = float("nan")  # the last keyframe's measured step over the estimate's (nan: none)
+        self.pitch_deg = float("nan")  # the floor's pitch against the assumed one it was measured on (nan: none)
         self.n_factors = 0  # range factors added to the smoother
 
     def after_update(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None,
@@ -370,7 +516,7 @@ class RoadRegion:
         height the measurement implies in the estimate's scale (the known height times the estimate's step over the
         measured one; None: not measured), the floor's measurement for the cue check. ``n_floor_tied``: the floor
         landmarks the window ties to the floor (``road_region.max_floor_landmarks``)."""
-        self.ratio = float("nan")
+        self.ratio = self.pitch_deg = float("nan")
         if self.cue is None:
             return None
         self.cue.keep_image(k, image, mask)
@@ -385,6 +531,7 @@ class RoadRegion:
         if step is None or step.camera_m <= 0:
             return None
         self.ratio = step.camera_m / step.estimate_camera_m
+        self.pitch_deg = step.pitch_deg
         return self.floor.camera_height_m / self.ratio
 
     def add_factor(self, graph, w0: int) -> None:
@@ -402,7 +549,7 @@ class RoadRegion:
 
     def forget(self) -> None:
         """The window was reset: no step is measured across it, none is pending."""
-        self.ratio = float("nan")
+        self.ratio = self.pitch_deg = float("nan")
         if self.cue is not None:
             self.cue.keep_image(-1, None)
             self.cue.pending = None

@@ -526,6 +526,7 @@ def keyframe_output(be: SlidingWindowBackend, fo: FrontendOutput, n_new: int, n_
         cue_disagreement=float("nan") if floor.last_agreement is None else floor.last_agreement.disagreement,
         cues_agree=None if floor.last_agreement is None else floor.last_agreement.agree,
         road_step_ratio=be.road.ratio,
+        road_pitch_deg=be.road.pitch_deg,
         wheel_scale=calib.scale if be.calibrate else float("nan"),
         wheel_yaw_bias_per_m=calib.yaw_bias_per_m if be.calibrate else float("nan"),
         wheel_yaw_scale=calib.yaw_scale if be.calibrate else float("nan"),

@@ -71,8 +71,10 @@ def floor_summary(records: list[FrameRecord], T_base_cam: np.ndarray | None = No
     tilts = [(rec.floor_tilt_x_deg, rec.floor_tilt_y_deg, rec.floor_tilt_se_deg) for rec in records
              if rec.is_keyframe and np.isfinite(rec.floor_tilt_x_deg)]
     road = [rec.road_step_ratio for rec in records if rec.is_keyframe and np.isfinite(rec.road_step_ratio)]
+    pitch = [rec.road_pitch_deg for rec in records if rec.is_keyframe and np.isfinite(rec.road_pitch_deg)]
     return {"road_region_steps": len(road),
             "road_region_ratio_median": round(float(np.median(road)), 5) if road else None,
+            "road_region_pitch_deg_median": round(float(np.median(pitch)), 3) if pitch else None,
             "base_rocking_deg_median": round(float(np.median(rocking)), 4) if rocking else None,
             "level_frame_keyframes": sum(1 for rec in records if rec.level_frame),
             "floor_tilt_deg": None if not tilts else [round(float(v), 3) for v in tilts[-1][:2]],
@@ -208,8 +210,10 @@ def _scale_line(r: RunResult, summary: dict) -> str:
 def _floor_line(r: RunResult, summary: dict) -> str | None:
     floor = []
     if summary["road_region_steps"]:
+        pitch = summary.get("road_region_pitch_deg_median")
+        on = f", on the floor pitched {pitch:+.2f} deg from the set-up's (median)" if pitch else ""
         floor.append(f"its region measured {summary['road_region_steps']} keyframe steps (median "
-                     f"{summary['road_region_ratio_median']:.3f} of the estimate's step; backend.ground.road_region)")
+                     f"{summary['road_region_ratio_median']:.3f} of the estimate's step{on}; backend.ground.road_region)")
     if summary["base_rocking_deg_median"] is not None:
         floor.append(f"base rocking {summary['base_rocking_deg_median']:.2f} deg between keyframes (level frame at "
                      f"{summary['level_frame_keyframes']} keyframes)")

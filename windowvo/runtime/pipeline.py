@@ -387,6 +387,7 @@ class Pipeline:
             cues_agree=bo.cues_agree if bo is not None else None,
             wheel_yaw_scale=round(bo.wheel_yaw_scale, 6) if bo is not None else float("nan"),
             road_step_ratio=round(bo.road_step_ratio, 5) if bo is not None else float("nan"),
+            road_pitch_deg=round(bo.road_pitch_deg, 4) if bo is not None else float("nan"),
         )
 
 
