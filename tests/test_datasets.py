@@ -288,3 +288,30 @@ def test_kitti_monocular_is_metric(tmp_path, name):
     assert r.monocular and r.metric and r.scale_sources == ["ground plane (camera height)"]
     assert summary["metric"] and summary["floor_scale_reanchors"] == r.floor_scale_reanchors
     assert acc["ate_se3_rmse_m"] <= 0.02 * acc["path_length_m"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", KITTI)
+def test_kitti_road_region_with_its_pitch_beats_the_wheels_alone(tmp_path, name):
+    """The real road with wheels +2% and -3% (the scale suite's KITTI cases): its corners give the fused run no floor
+    point, so the road's scale comes from ``ground.road_region``, which searches the floor's pitch (KITTI's camera is
+    about 1 deg against its road). Fused ATE SE(3) at most 0.8x the wheels alone and within 2x of its own Sim(3)
+    (the scale error mostly gone). When written: KITTI 06 0.033 / 0.153 m against 0.479 / 0.629 m, KITTI 01
+    0.219 / 0.280 m against 0.428 / 0.392 m (0.07-0.71x; the 0.8x bound set after that first measurement), the
+    pitch found +1.06 and +1.55 deg (stereo says 1.2-1.7 deg on KITTI 01's first half); with the set-up's pitch
+    (``pitch_search_deg: 0``) KITTI 06 +2% was 1.395 m and KITTI 01 +2% 0.727 m, worse than the wheels alone."""
+    root = SHARED_DATA / name
+    if not root.is_dir():
+        pytest.skip(f"{root} not present")
+    for scale in (0.02, -0.03):
+        cfg = make_config(root, tmp_path / f"out{scale}", dataset="kitti",
+                          odometry_synthesis={"enabled": True, "scale_error": scale, "yaw_bias_per_m": 0.002},
+                          backend={"ground": {"road_region": {"enabled": True}}})
+        rep = run_job(cfg)
+        ours, wheel = rep.accuracy, rep.wheel_accuracy.ate_se3_rmse_m
+        pitch = [r.road_pitch_deg for r in rep.result.records if np.isfinite(r.road_pitch_deg)]
+        print(f"{name} wheels {scale:+.0%}: fused ATE SE(3) {ours.ate_se3_rmse_m:.3f} m, Sim(3) "
+              f"{ours.ate_sim3_rmse_m:.3f} m, wheels alone {wheel:.3f} m; region steps {len(pitch)}, pitch "
+              f"{np.median(pitch):+.2f} deg (median)")
+        assert ours.ate_se3_rmse_m <= 0.8 * wheel
+        assert ours.ate_se3_rmse_m <= 2.0 * ours.ate_sim3_rmse_m
