@@ -231,8 +231,8 @@ class RoadRegionConfig(_Section):
                           "the two keyframes' images through the floor's homography (the estimate's rotation and "
                           "direction, the camera height, the floor's pitch searched), tied as a range factor between "
                           "their poses, where the window ties fewer than max_floor_landmarks floor points; for floors "
-                          "with few corners (a road, a plain warehouse floor). Off by default: it costs up to about "
-                          "70 ms of back end a keyframe at 1226x370, and as the default two regression tests failed "
+                          "with few corners (a road, a plain warehouse floor). Off by default: it costs about 50 ms of "
+                          "back end a keyframe at 1226x370, and as the default two regression tests failed "
                           "(docs/scale_suite.md)")
     near_heights: float = Field(2.0, gt=0, description="the region's near edge ahead of the camera, in camera heights")
     far_heights: float = Field(6.0, gt=0, description="its far edge, in camera heights")
