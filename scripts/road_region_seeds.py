@@ -1,11 +1,15 @@
-"""Study (issue #26 item 2): ``backend.ground.road_region`` on rendered sequences the scale suite does not hold.
+"""Study (issue #26): two settings compared on rendered sequences the scale suite does not hold.
 
-    python scripts/road_region_seeds.py --work DIR [--jobs 2] [--base K=V ...] [--set K=V ...]
+    python scripts/road_region_seeds.py --work DIR [--cases region|slip] [--jobs 2] [--base K=V ...] [--set K=V ...]
 
-Renders 13 sequences (rooms and warehouses 10 s, streets 8 s, wheels -2% to +2%, seeds 121-123, 221-226, 331-334)
-into DIR and runs each fused and floor only, with and without the floor's region (or with the overrides ``--base``
-against ``--set``: two settings compared); prints each ATE SE(3) and the ratios' geometric mean and worst per scene
-(docs/scale_suite.md, "The floor measured by region").
+``--cases region`` (the default; item 2, ``backend.ground.road_region``): renders 13 sequences (rooms and
+warehouses 10 s, streets 8 s, wheels -2% to +2%, seeds 121-123, 221-226, 331-334) into DIR and runs each fused and
+floor only, with and without the floor's region (docs/scale_suite.md, "The floor measured by region").
+``--cases slip`` (item 3, ``backend.odometry.slip_switch``): 12 sequences whose wheels slip in two windows of
+other times and sizes than the suite's (seeds 141-144, 241-244, 341-344), each run fused and wheels only, with and
+without the switch (docs/scale_suite.md, "Slipping wheel steps switched off").
+``--base`` against ``--set``: any two settings instead. Prints each ATE SE(3) and the ratios' geometric mean and
+worst per scene.
 """
 
 from __future__ import annotations
@@ -26,26 +30,43 @@ CASES = ([("warehouse", p, s, sc, 0.004) for p, s, sc in [("loop", 221, 0.01), (
                                                         ("straight", 123, 0.01)]])
 
 
+# Slip windows (start s, end s, extra distance share) of other times and sizes than the suite's.
+SLIP_WINDOWS = [[(2.5, 3.5, 0.3), (6.5, 8.0, 0.45)], [(3.0, 4.5, 0.5), (7.5, 8.5, 0.3)],
+                [(4.0, 5.0, 0.35), (6.0, 7.5, 0.4)], [(2.0, 3.0, 0.45), (5.5, 6.5, 0.35)]]
+SLIP_CASES = ([("room", p, s, sc, 0.006, w) for (p, s, sc), w in zip(
+                  [("loop", 141, 0.01), ("figure_eight", 142, -0.02), ("loop", 143, -0.01), ("straight", 144, 0.02)],
+                  SLIP_WINDOWS)]
+              + [("warehouse", p, s, sc, 0.004, w) for (p, s, sc), w in zip(
+                  [("loop", 241, 0.02), ("figure_eight", 242, 0.01), ("stop_and_go", 243, -0.02),
+                   ("loop", 244, -0.01)], SLIP_WINDOWS)]
+              + [("street", p, s, sc, 0.002, w) for (p, s, sc), w in zip(
+                  [("loop", 341, 0.02), ("straight", 342, -0.01), ("loop", 343, -0.02), ("stop_and_go", 344, 0.01)],
+                  SLIP_WINDOWS)])
+
 OFF = ("backend.ground.road_region.enabled=false",)
 ON = ("backend.ground.road_region.enabled=true",)
+SWITCH_OFF = ("backend.odometry.slip_switch=false",)
+SWITCH_ON = ("backend.odometry.slip_switch=true",)
+STUDIES = {"region": (CASES, ("fused", "floor"), OFF, ON), "slip": (SLIP_CASES, ("fused", "wheels"), SWITCH_OFF,
+                                                                      SWITCH_ON)}
 
 
-def run_case(args: tuple[Path, tuple[str, str, int, float, float], tuple[str, ...], tuple[str, ...]]
+def run_case(args: tuple[Path, tuple, tuple[str, ...], tuple[str, ...], tuple[str, ...]]
              ) -> tuple[str, list[float]]:
-    """ATE SE(3) of (fused base, fused set, floor base, floor set)."""
-    work, (scene, path, seed, scale, yaw), base, new = args
+    """ATE SE(3) of (first way base, first way set, second way base, second way set)."""
+    work, (scene, path, seed, scale, yaw, *slip), ways, base, new = args
     logging.disable(logging.WARNING)
     from windowvo.config import config_from_dict
     from windowvo.runtime.job import run_job
     from windowvo.tools import scale_suite as ss
 
     spec: dict = {"path": path, "seed": seed, "duration_s": 8.0 if scene == "street" else 10.0,
-                  "wheel": {"scale_error": scale, "yaw_bias_per_m": yaw}}
+                  "wheel": {"scale_error": scale, "yaw_bias_per_m": yaw, "slip_windows": slip[0] if slip else []}}
     if scene == "street":
         spec.update(ss.STREET_IMAGE)
     case = ss.ScaleCase(f"{scene}_{path}_{seed}", scene, spec)
     ates = []
-    for way in ("fused", "floor"):
+    for way in ways:
         for arm, overrides in (("base", base), ("set", new)):
             data = ss.case_config(case, work, work / "out" / arm, way, overrides)
             rep = run_job(config_from_dict(data))
@@ -56,17 +77,20 @@ def run_case(args: tuple[Path, tuple[str, str, int, float, float], tuple[str, ..
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, required=True, help="folder for the renders and the runs")
+    ap.add_argument("--cases", choices=sorted(STUDIES), default="region", help="which study's sequences")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--base", action="append", metavar="K=V", help="the first setting's overrides (repeatable; "
-                    "default: the region off)")
-    ap.add_argument("--set", action="append", metavar="K=V", help="the second's (default: the region on)")
+                    "default: the region off, or the slip switch off)")
+    ap.add_argument("--set", action="append", metavar="K=V", help="the second's (default: the region on, or the "
+                    "slip switch on)")
     args = ap.parse_args()
     try:
         args.work.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         print(f"road_region_seeds.py: error: cannot use {args.work}: {err.strerror}", file=sys.stderr)
         return 2
-    base, new = tuple(args.base or OFF), tuple(args.set or ON)
+    cases, ways, off, on = STUDIES[args.cases]
+    base, new = tuple(args.base or off), tuple(args.set or on)
     from windowvo.config import apply_overrides, config_from_dict
     from windowvo.errors import WindowVOError
 
@@ -78,9 +102,9 @@ def main() -> int:
             print(f"road_region_seeds.py: error: {err}", file=sys.stderr)
             return 2
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
-        results = list(ex.map(run_case, [(args.work, c, base, new) for c in CASES]))
+        results = list(ex.map(run_case, [(args.work, c, ways, base, new) for c in cases]))
     for name, (f0, f1, g0, g1) in results:
-        print(f"{name:28s} fused {f0:.3f} -> {f1:.3f} ({f1 / f0:.2f}x)  floor only {g0:.3f} -> {g1:.3f} "
+        print(f"{name:28s} {ways[0]} {f0:.3f} -> {f1:.3f} ({f1 / f0:.2f}x)  {ways[1]} only {g0:.3f} -> {g1:.3f} "
               f"({g1 / g0:.2f}x)")
     for scene in ("warehouse", "street", "room"):
         fused = [v[1] / v[0] for n, v in results if n.startswith(scene)]
@@ -89,8 +113,8 @@ def main() -> int:
         def gmean(xs: list[float]) -> float:
             return math.exp(sum(map(math.log, xs)) / len(xs))
 
-        print(f"{scene}: fused {gmean(fused):.2f}x (worst {max(fused):.2f}x), floor only {gmean(floor):.2f}x "
-              f"(worst {max(floor):.2f}x)")
+        print(f"{scene}: {ways[0]} {gmean(fused):.2f}x (worst {max(fused):.2f}x), {ways[1]} only "
+              f"{gmean(floor):.2f}x (worst {max(floor):.2f}x)")
     return 0
 
 

@@ -188,6 +188,13 @@ class OdometryNoiseConfig(_Section):
                                                               "cauchy lets consistent vision overrule slipping wheels")
     robust_k: float | None = Field(None, gt=0, description="threshold of the robust loss in sigmas of the 3-D planar "
                                    "residual; default: from the chi-square quantile of backend.robust_confidence")
+    slip_switch: bool = Field(True, description="after each keyframe's update, a wheel step whose planar residual "
+                              "at the window's solution lies beyond slip_switch_k sigmas is taken for slip or a skid: "
+                              "its planar factor is removed, the window solved again without it, and the step left out "
+                              "of the floor-against-wheels test (stats.csv wheel_step_sigmas, wheel_slip; the summary's "
+                              "wheel_slip)")
+    slip_switch_k: float | None = Field(None, gt=0, description="the switch's threshold in sigmas of the 3-D planar "
+                                        "residual; default: robust_k's")
     max_gap_s: float = Field(0.5, gt=0, description="longest gap in the wheel odometry bridged; over it the step is "
                                                     "vision only")
     max_speed_m_s: float = Field(60.0, gt=0, description="a wheel sample implying a faster motion since the previous "

@@ -151,6 +151,10 @@ class BackendOutput:
     # keyframes (nan: not tested), and whether the chi-square test found them agreeing (None: not tested).
     cue_disagreement: float = float("nan")
     cues_agree: bool | None = None
+    # The new wheel step against the window's solution (backend/wheel_slip.py): its planar residual in its own sigmas
+    # (nan: not judged), and whether it was taken for slip and its planar factor switched off (None: not judged).
+    wheel_step_sigmas: float = float("nan")
+    wheel_slip: bool | None = None
     # ground.road_region: this keyframe's step length measured by the floor's region over the estimate's (nan: none),
     # and the floor's pitch against the assumed one it was measured on (road_region.pitch_search_deg; nan: none).
     road_step_ratio: float = float("nan")
@@ -220,6 +224,8 @@ class FrameRecord:
     wheel_yaw_scale: float = float("nan")  # online wheel calibration's yaw scale (nan: not estimated)
     road_step_ratio: float = float("nan")  # the step's length by the floor's region over the estimate's (nan: none)
     road_pitch_deg: float = float("nan")  # the floor's pitch against the assumed one it was measured on (nan: none)
+    wheel_step_sigmas: float = float("nan")  # the wheel step's planar residual at the solution, sigmas (nan: not judged)
+    wheel_slip: bool | None = None  # the step was taken for slip and switched off (None: not judged)
 
 
 @dataclass

@@ -285,7 +285,7 @@ def agrees_with_wheel_step(cfg: BackendConfig, T_wheels: np.ndarray, T_other: np
 
 
 def odometry_factors(cfg: BackendConfig, k: int, T_prev_cur: np.ndarray, distance: float,
-                     calib_key: int | None) -> list[gtsam.NonlinearFactor]:
+                     calib_key: int | None, heading_only: bool = False) -> list[gtsam.NonlinearFactor]:
     """Wheel odometry between keyframes k-1 and k, as two parts of one measurement.
 
     The planar part (x, y, yaw) is what wheels measure: tight, growing with distance, under the
@@ -293,10 +293,13 @@ def odometry_factors(cfg: BackendConfig, k: int, T_prev_cur: np.ndarray, distanc
     that calibration state (a 3-D custom factor), else a plain between-factor. The vertical
     part (z, roll, pitch) only says "the robot drives on its wheels": loose and Gaussian, so it
     keeps linking the window where vision is briefly lost (a robust loss would let that link go).
+    ``heading_only``: the planar part's translation is left free (a step whose distance slipped, ``wheel_slip.py``).
     """
     o = cfg.odometry
     yaw = float(np.arctan2(T_prev_cur[1, 0], T_prev_cur[0, 0]))
     s_xy, s_yaw = planar_odometry_sigmas(cfg, distance, yaw)
+    if heading_only:
+        s_xy = FREE_SIGMA
     k_planar = threshold(o.robust_k, 3, cfg)
     meas = gtsam.Pose3(T_prev_cur)
     vertical = gtsam.noiseModel.Diagonal.Sigmas(
@@ -311,6 +314,20 @@ def odometry_factors(cfg: BackendConfig, k: int, T_prev_cur: np.ndarray, distanc
         planar = gtsam.noiseModel.Diagonal.Sigmas(np.array([FREE_SIGMA, FREE_SIGMA, s_yaw, s_xy, s_xy, FREE_SIGMA]))
         out.append(gtsam.BetweenFactorPose3(X(k - 1), X(k), meas, robust(planar, o.robust, k_planar)))
     return out
+
+
+def wheel_step_sigmas(cfg: BackendConfig, planar_factor: gtsam.NoiseModelFactor, values: gtsam.Values,
+                      T_prev_cur: np.ndarray, distance: float, calibrated: bool) -> np.ndarray:
+    """How far the poses (and calibration) in ``values`` lie off a wheel step's planar factor (the last of
+    ``odometry_factors``): its planar residual (yaw, x, y) in the step's own sigmas, before any robust loss.
+    ``calibrated``: the factor goes through a calibration state (a 3-D residual), else it is a between-factor (a
+    6-D one, rotation then translation, whose yaw, x and y are taken)."""
+    err = np.array(planar_factor.unwhitenedError(values), dtype=np.float64)
+    if not calibrated:
+        err = err[[2, 3, 4]]
+    yaw = float(np.arctan2(T_prev_cur[1, 0], T_prev_cur[0, 0]))
+    s_xy, s_yaw = planar_odometry_sigmas(cfg, distance, yaw)
+    return err / np.array([s_yaw, s_xy, s_xy])
 
 
 def calibration_prior(k: int, calib: np.ndarray, sigmas: np.ndarray):

@@ -71,6 +71,7 @@ from .landmarks import LandmarkManager, reprojection_errors, reprojection_rms
 from .report import ScaleReport, scale_report, scale_sources
 from .road_region import RoadRegion
 from .wheel_calibration import WheelCalibrationStates
+from .wheel_slip import WheelSlipSwitch
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +96,7 @@ class SlidingWindowBackend:
         self.kf_pose: dict[int, np.ndarray] = {}  # latest estimate; final once marginalised
         # The wheel calibration states C(k) (live once the floor is in view) and the ground cue.
         self.wheel = WheelCalibrationStates(cfg, use_odometry)
+        self.slip = WheelSlipSwitch(cfg)  # a wheel step the window's solution rejects is switched off
         self.floor = FloorModel(camera, cfg, use_odometry, self.lm, self.kf_pose)
         self.vision = LandmarkFactors(camera, cfg, self.lm, self.floor, self.kf_pose, self.K, self.body_P_sensor)
         self.road = RoadRegion(camera, cfg, self.floor, self.kf_pose)  # ground.road_region (does nothing when off)
@@ -225,6 +227,7 @@ class SlidingWindowBackend:
             msg = " ".join(str(err).split())[:300]
             log.warning("keyframe %d (frame %d): smoother failed (%s); resetting the window from the last good pose",
                         k, fo.frame_index, msg)
+            self.slip.forget()
             self._reset_with(fo, odom, T_guess)
             self.road.forget()
             status = BackendStatus.RECOVERED
@@ -288,6 +291,11 @@ class SlidingWindowBackend:
             assert odom is not None
             for f in fac.odometry_factors(self.cfg, k, odom.T_prev_cur, odom.distance_m, calib_key):
                 graph.add(f)
+            if not restart and calib_key is not None:
+                # The planar part (the last factor) is judged on this update's solution, once the floor holds the
+                # window's scale (a calibrated step): where the wheels alone set it, the solution's scale is theirs
+                # and a step cannot be judged against it (wheel_slip.py).
+                self.slip.expect(graph.size() - 1, k, odom, calib_key)
             return
         delta = inv_T(self.kf_pose[k - 1]) @ T_guess
         graph.add(fac.monocular_motion_factor(k, delta, first_baseline=(k == 1 or restart) and not self.use_odometry))
@@ -307,6 +315,7 @@ class SlidingWindowBackend:
         values = gtsam.Values()
         stamps: dict[int, float] = {}
         self.floor.begin_update()
+        self.slip.begin_update()
         self._pose_factors(graph, values, stamps, odom, T_guess)
         self.road.add_factor(graph, self.window_start(k))
         # Outlier landmarks flagged after the previous update: remove their factors; the key stays
@@ -334,9 +343,13 @@ class SlidingWindowBackend:
         self.floor.count_ground_factors(n_ground)
         self._refresh_states()
         lap(Stage.BACKEND_ESTIMATE)
+        self._switch_off_slipping_step(fo.frame_index, idx)
+        lap(Stage.BACKEND_ISAM2)
         n_tied = self.lm.n_tied_to_floor(self.window_start()) if self.road.cue is not None else 0
         road_height = self.road.after_update(k, fo.image, fo.image_mask, n_tied)
-        if k > 0:
+        if k > 0 and self.slip.switched_now:
+            self.floor.last_agreement = None  # a slipping step says nothing about the tyre's scale
+        elif k > 0:
             step = np.linalg.norm(self.kf_pose[k][:3, 3] - self.kf_pose[k - 1][:3, 3])
             self.floor.check_cues(k, odom.distance_m if self._odometry_usable(odom) else None, float(step), road_height)
         lap(Stage.BACKEND_FLOOR)
@@ -384,6 +397,23 @@ class SlidingWindowBackend:
             self.lm.forget(new_lms)
             raise
         return idx
+
+    def _switch_off_slipping_step(self, frame_index: int, new_indices: list[int]) -> None:
+        """The new wheel step judged on this update's solution (``wheel_slip.py``); if it is taken for slip, its
+        planar factor is replaced (by its heading alone, or nothing) and the window solved again."""
+        assert self.estimate is not None
+        switch = self.slip.judge(frame_index, self.smoother, self.estimate, new_indices)
+        if switch is None:
+            return
+        index, replacement = switch
+        self.submit(replacement, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap(), [index])
+        for _ in range(self.cfg.extra_iterations):
+            self.smoother.update()
+        self.estimate = self.smoother.calculateEstimate()
+        bad = diverged_keyframe(self.estimate, range(self.window_start(), self.k + 1))
+        if bad is not None:
+            raise RuntimeError(f"the estimate diverged after a slipping wheel step was switched off: keyframe {bad}")
+        self._refresh_states()
 
     def submit(self, graph, values, ts_map, remove) -> list[int]:
         """One smoother update of keyframe ``k``'s new factors, values and stamps, removing the factors at the
@@ -525,6 +555,8 @@ def keyframe_output(be: SlidingWindowBackend, fo: FrontendOutput, n_new: int, n_
         floor_normal_learnt=floor.floor_normal_learnt,
         cue_disagreement=float("nan") if floor.last_agreement is None else floor.last_agreement.disagreement,
         cues_agree=None if floor.last_agreement is None else floor.last_agreement.agree,
+        wheel_step_sigmas=float("nan") if be.slip.last is None else be.slip.last.sigmas,
+        wheel_slip=None if be.slip.last is None else be.slip.last.switched,
         road_step_ratio=be.road.ratio,
         road_pitch_deg=be.road.pitch_deg,
         wheel_scale=calib.scale if be.calibrate else float("nan"),

@@ -103,6 +103,36 @@ def cue_summary(records: list[FrameRecord]) -> dict | None:
             "disagree_since_frame": None if since is None else since.frame_index}
 
 
+def slip_summary(records: list[FrameRecord]) -> dict | None:
+    """Wheel steps judged on the window's solution (``backend/wheel_slip.py``): how many, how many were taken for
+    slip and switched off, and the stretches of frames they span (first and last frame of each run of consecutive
+    switched keyframes). None: no step judged (no wheels, or ``backend.odometry.slip_switch`` off)."""
+    judged = [rec for rec in records if rec.wheel_slip is not None]
+    if not judged:
+        return None
+    stretches: list[list[int]] = []
+    previous = False
+    for rec in judged:
+        if rec.wheel_slip:
+            if previous:
+                stretches[-1][1] = rec.frame_index
+            else:
+                stretches.append([rec.frame_index, rec.frame_index])
+        previous = bool(rec.wheel_slip)
+    return {"keyframes_judged": len(judged), "switched_off": sum(bool(rec.wheel_slip) for rec in judged),
+            "stretches": stretches}
+
+
+def _slip_line(summary: dict) -> str | None:
+    c = summary.get("wheel_slip")
+    if c is None or not c["switched_off"]:
+        return None
+    spans = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in c["stretches"][:6])
+    more = f" and {len(c['stretches']) - 6} more" if len(c["stretches"]) > 6 else ""
+    return (f"wheel slip: {c['switched_off']} of {c['keyframes_judged']} wheel steps disagreed with the window's "
+            f"solution and were switched off (frames {spans}{more})")
+
+
 def _cue_line(summary: dict) -> str | None:
     c = summary.get("cue_check")
     if c is None:
@@ -175,6 +205,7 @@ def summary_dict(report: JobReport, cfg: Config) -> dict:
         "interrupted": r.interrupted,
         **floor_summary(r.records, report.sequence.camera.T_base_cam),
         "cue_check": cue_summary(r.records),
+        "wheel_slip": slip_summary(r.records),
         "accuracy": report.accuracy.as_dict() if report.accuracy is not None else None,
         "accuracy_online": report.online_accuracy.as_dict() if report.online_accuracy is not None else None,
         "wheel_only_accuracy": report.wheel_accuracy.as_dict() if report.wheel_accuracy is not None else None,
@@ -259,6 +290,9 @@ def summary_lines(report: JobReport, summary: dict, out: Path) -> list[str]:
     cues = _cue_line(summary)
     if cues is not None:
         lines.append(cues)
+    slip = _slip_line(summary)
+    if slip is not None:
+        lines.append(slip)
     if report.accuracy is not None:
         lines.append("accuracy (smoothed): " + report.accuracy.summary(metric=r.metric))
     if report.online_accuracy is not None:

@@ -388,6 +388,8 @@ class Pipeline:
             wheel_yaw_scale=round(bo.wheel_yaw_scale, 6) if bo is not None else float("nan"),
             road_step_ratio=round(bo.road_step_ratio, 5) if bo is not None else float("nan"),
             road_pitch_deg=round(bo.road_pitch_deg, 4) if bo is not None else float("nan"),
+            wheel_step_sigmas=round(bo.wheel_step_sigmas, 3) if bo is not None else float("nan"),
+            wheel_slip=bo.wheel_slip if bo is not None else None,
         )
 
 
