@@ -189,12 +189,19 @@ class OdometryNoiseConfig(_Section):
     robust_k: float | None = Field(None, gt=0, description="threshold of the robust loss in sigmas of the 3-D planar "
                                    "residual; default: from the chi-square quantile of backend.robust_confidence")
     slip_switch: bool = Field(True, description="after each keyframe's update, a wheel step whose planar residual "
-                              "at the window's solution lies beyond slip_switch_k sigmas is taken for slip or a skid: "
+                              "at the window's solution lies beyond the switch's threshold is taken for slip or a skid: "
                               "its planar factor is removed, the window solved again without it, and the step left out "
                               "of the floor-against-wheels test (stats.csv wheel_step_sigmas, wheel_slip; the summary's "
                               "wheel_slip)")
+    slip_switch_confidence: float = Field(0.9999, gt=0.5, lt=1, description="a step is taken for slip when its "
+                                          "planar residual lies beyond the chi-square quantile (3-D) at this "
+                                          "confidence (4.6 sigma): a switch is a hard decision, for gross errors only "
+                                          "(the robust loss weighs the rest)")
     slip_switch_k: float | None = Field(None, gt=0, description="the switch's threshold in sigmas of the 3-D planar "
-                                        "residual; default: robust_k's")
+                                        "residual instead; default: from slip_switch_confidence")
+    slip_switch_min_observations: int = Field(30, ge=0, description="a step is judged only where its keyframe holds "
+                                              "at least this many projection factors: with fewer, vision does not "
+                                              "constrain the step and a wrong solution would switch good wheels off")
     max_gap_s: float = Field(0.5, gt=0, description="longest gap in the wheel odometry bridged; over it the step is "
                                                     "vision only")
     max_speed_m_s: float = Field(60.0, gt=0, description="a wheel sample implying a faster motion since the previous "

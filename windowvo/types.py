@@ -170,7 +170,8 @@ class FrameEstimate:
     """What a robot gets for one frame, at that frame's time (causal: no later frame used).
 
     ``T_world_base`` is the newest keyframe estimate right after it was added, moved on to this
-    frame by the wheels (or held, without wheels). The fixed-lag smoothed pose of the same frame,
+    frame by the wheels (without wheels: along the last keyframe step, by the frame's share of it in
+    parallax; held at a standstill). The fixed-lag smoothed pose of the same frame,
     refined by later keyframes, is in the smoothed trajectory instead.
     """
 

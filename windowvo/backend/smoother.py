@@ -11,7 +11,7 @@ its motion factors (``_pose_factors``), the observations of known landmarks
 (``LandmarkFactors.observation_factors``), new landmarks with their ground factors
 (``LandmarkFactors.new_landmark_factors``), the smoother update (``_solve``, through ``submit``). This
 module owns the window: keys and timestamps, the lag, the iSAM2 update, the estimate, and the reset
-(``_reset_with``, ``_restart_window``); it also rescales the trajectory at a monocular run's late
+(``_reset_with``, ``restart_window``); it also rescales the trajectory at a monocular run's late
 metric start (``FloorModel.late_metric_start`` says when and by how much).
 
 States: ``X(k)`` is ``T_world_base`` of keyframe k, ``L(id)`` the world position of the landmark
@@ -220,7 +220,7 @@ class SlidingWindowBackend:
             elif not fo.vision_ok:
                 status = BackendStatus.ODOMETRY_FALLBACK
             elif self.floor.waiting_for_floor() and k >= 2:
-                earlier = self._late_metric_start(fo)
+                earlier = late_metric_start(self, fo)
             lap(Stage.BACKEND_FLOOR)
         except RuntimeError as err:
             lap.skip()
@@ -337,14 +337,12 @@ class SlidingWindowBackend:
             n_vis += n_born_vis
             remove = remove + self.lm.take_removals()  # the slots of the smart factors replaced just now
         lap(Stage.BACKEND_FACTORS)
-        idx = self._solve(graph, values, stamps, remove, new_lms)  # times the update and the estimate itself
+        idx = self._solve(graph, values, stamps, remove, new_lms, n_vis)  # times the update and the estimate itself
         lap.skip()
         self.lm.record_factors(owners, idx)
         self.floor.count_ground_factors(n_ground)
         self._refresh_states()
         lap(Stage.BACKEND_ESTIMATE)
-        self._switch_off_slipping_step(fo.frame_index, idx)
-        lap(Stage.BACKEND_ISAM2)
         n_tied = self.lm.n_tied_to_floor(self.window_start()) if self.road.cue is not None else 0
         road_height = self.road.after_update(k, fo.image, fo.image_mask, n_tied)
         if k > 0 and self.slip.switched_now:
@@ -375,45 +373,38 @@ class SlidingWindowBackend:
             if cfg.planar_prior.height_prior:
                 graph.add(fac.height_prior_factor(X(k), T_guess, cfg.planar_prior.height_sigma_m))
 
-    def _solve(self, graph, values, stamps: dict[int, float], remove: list[int], new_lms: list[int]) -> list[int]:
-        """One smoother update (plus ``extra_iterations``) and the new estimate; the new factors' indices."""
-        k, cfg = self.k, self.cfg
+    def _solve(self, graph, values, stamps: dict[int, float], remove: list[int], new_lms: list[int],
+               n_vis: int = 0) -> list[int]:
+        """One smoother update (plus ``extra_iterations``) and the new estimate; the new factors' indices. The new
+        wheel step is then judged on that estimate (``wheel_slip.py``; ``n_vis``: this keyframe's projection
+        factors): a step taken for slip is replaced (its heading alone, or nothing) and the window solved again."""
         ts_map = gtsam.FixedLagSmootherKeyTimestampMap()
         for key, t in stamps.items():
             ts_map.insert((key, t))
-        lap = Laps()
         try:
             idx = self.submit(graph, values, ts_map, remove)
-            for _ in range(cfg.extra_iterations if k > 2 else 2):
-                self.smoother.update()  # more Gauss-Newton steps (iSAM2 takes one per update)
-            lap(Stage.BACKEND_ISAM2)
-            self.estimate = self.smoother.calculateEstimate()
-            bad = diverged_keyframe(self.estimate, range(self.window_start(), k + 1))
-            if bad is not None:  # a solve that ran off (e.g. a monocular run's scale collapsing): as a failed one
-                raise RuntimeError(f"the estimate diverged: keyframe {bad}'s pose is not a rigid motion")
-            lap(Stage.BACKEND_ESTIMATE)
+            self._iterate()
+            switch = self.slip.judge(self.kf_frame[self.k], self.smoother, self.estimate, idx, n_vis)
+            if switch is not None:
+                self.submit(switch[1], gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap(), [switch[0]])
+                self._iterate()
         except RuntimeError:
             # Undo the bookkeeping of this update before the caller resets the window.
             self.lm.forget(new_lms)
             raise
         return idx
 
-    def _switch_off_slipping_step(self, frame_index: int, new_indices: list[int]) -> None:
-        """The new wheel step judged on this update's solution (``wheel_slip.py``); if it is taken for slip, its
-        planar factor is replaced (by its heading alone, or nothing) and the window solved again."""
-        assert self.estimate is not None
-        switch = self.slip.judge(frame_index, self.smoother, self.estimate, new_indices)
-        if switch is None:
-            return
-        index, replacement = switch
-        self.submit(replacement, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap(), [index])
-        for _ in range(self.cfg.extra_iterations):
+    def _iterate(self) -> None:
+        """More Gauss-Newton steps (iSAM2 takes one per update), then the estimate, checked."""
+        lap = Laps()
+        for _ in range(self.cfg.extra_iterations if self.k > 2 else 2):
             self.smoother.update()
+        lap(Stage.BACKEND_ISAM2)
         self.estimate = self.smoother.calculateEstimate()
         bad = diverged_keyframe(self.estimate, range(self.window_start(), self.k + 1))
-        if bad is not None:
-            raise RuntimeError(f"the estimate diverged after a slipping wheel step was switched off: keyframe {bad}")
-        self._refresh_states()
+        if bad is not None:  # a solve that ran off (e.g. a monocular run's scale collapsing): as a failed one
+            raise RuntimeError(f"the estimate diverged: keyframe {bad}'s pose is not a rigid motion")
+        lap(Stage.BACKEND_ESTIMATE)
 
     def submit(self, graph, values, ts_map, remove) -> list[int]:
         """One smoother update of keyframe ``k``'s new factors, values and stamps, removing the factors at the
@@ -441,17 +432,17 @@ class SlidingWindowBackend:
         the run stops with a clear error (the pipeline still writes what it has)."""
         self.n_resets += 1
         try:
-            self._restart_window(fo, odom, T_guess, with_previous=self.k > 0)
+            self.restart_window(fo, odom, T_guess, with_previous=self.k > 0)
         except RuntimeError as err:
             log.warning("keyframe %d: reset from the last good pose failed (%s); restarting from this keyframe",
                         self.k, " ".join(str(err).split())[:200])
             try:
-                self._restart_window(fo, None, T_guess, with_previous=False)
+                self.restart_window(fo, None, T_guess, with_previous=False)
             except RuntimeError as err2:
                 raise WindowVOError(f"the smoother could not restart at keyframe {self.k} (frame "
                                     f"{fo.frame_index}): {' '.join(str(err2).split())[:200]}") from None
 
-    def _restart_window(self, fo: FrontendOutput, odom, T_guess: np.ndarray, with_previous: bool) -> None:
+    def restart_window(self, fo: FrontendOutput, odom, T_guess: np.ndarray, with_previous: bool) -> None:
         k = self.k
         self._new_smoother()
         self.lm.restart(k, fo.track_ids, fo.pixels_undistorted, fo.pixel_sigma_scale)
@@ -483,26 +474,6 @@ class SlidingWindowBackend:
             self.kf_pose[k - 1] = self.estimate.atPose3(X(k - 1)).matrix()
         self._refresh_states()
 
-    def _late_metric_start(self, fo: FrontendOutput) -> dict[int, np.ndarray] | None:
-        """A monocular run with no floor in its first two keyframes is up to scale until the floor comes into
-        view (``FloorModel.late_metric_start``). Then every keyframe pose is rescaled about the first camera
-        centre, the window restarts from this keyframe (metric now, so the ground factors hold the scale from
-        here on), and the run is metric. Returns the rescaled poses of the keyframes before the window (the
-        window's go out as usual), or None when the run stays up to scale."""
-        s = self.floor.late_metric_start(self.k)
-        if s is None:
-            return None
-        c0 = (self.kf_pose[0] @ self.T_base_cam)[:3, 3]
-        base_from_cam = inv_T(self.T_base_cam)
-        for kk, T_wb in self.kf_pose.items():
-            T_wc = T_wb @ self.T_base_cam
-            T_wc[:3, 3] = c0 + s * (T_wc[:3, 3] - c0)
-            self.kf_pose[kk] = T_wc @ base_from_cam
-        self._restart_window(fo, None, self.kf_pose[self.k], with_previous=False)
-        log.info("keyframe %d (frame %d): the floor is in view; the run is metric from here (scale x %.3f), the "
-                 "trajectory so far rescaled", self.k, fo.frame_index, s)
-        return {self.kf_frame[kk]: self.kf_pose[kk] for kk in range(self.window_start()) if kk in self.kf_pose}
-
 
 # A keyframe's estimated rotation must be one to this tolerance (|R^T R - I|, max entry): no run of the scale suite
 # or the benchmark comes near it; a solve that ran off gave 1.7e-6 growing 2.4x a keyframe, then 1e-226 matrices.
@@ -520,6 +491,27 @@ def diverged_keyframe(estimate: gtsam.Values, keyframes) -> int | None:
     err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
     bad = ~np.all(np.isfinite(T), axis=(1, 2)) | ~(err <= ROTATION_TOLERANCE) | ~(np.linalg.det(R) > 0.0)
     return kfs[int(np.argmax(bad))] if bad.any() else None
+
+
+def late_metric_start(be: SlidingWindowBackend, fo: FrontendOutput) -> dict[int, np.ndarray] | None:
+    """A monocular run with no floor in its first two keyframes is up to scale until the floor comes into
+    view (``FloorModel.late_metric_start``). Then every keyframe pose is rescaled about the first camera
+    centre, the window restarts from this keyframe (metric now, so the ground factors hold the scale from
+    here on), and the run is metric. Returns the rescaled poses of the keyframes before the window (the
+    window's go out as usual), or None when the run stays up to scale."""
+    s = be.floor.late_metric_start(be.k)
+    if s is None:
+        return None
+    c0 = (be.kf_pose[0] @ be.T_base_cam)[:3, 3]
+    base_from_cam = inv_T(be.T_base_cam)
+    for kk, T_wb in be.kf_pose.items():
+        T_wc = T_wb @ be.T_base_cam
+        T_wc[:3, 3] = c0 + s * (T_wc[:3, 3] - c0)
+        be.kf_pose[kk] = T_wc @ base_from_cam
+    be.restart_window(fo, None, be.kf_pose[be.k], with_previous=False)
+    log.info("keyframe %d (frame %d): the floor is in view; the run is metric from here (scale x %.3f), the "
+             "trajectory so far rescaled", be.k, fo.frame_index, s)
+    return {be.kf_frame[kk]: be.kf_pose[kk] for kk in range(be.window_start()) if kk in be.kf_pose}
 
 
 def keyframe_output(be: SlidingWindowBackend, fo: FrontendOutput, n_new: int, n_vis: int, n_ground: int,

@@ -10,8 +10,9 @@ that is not there.
 
 So after each keyframe's update the new wheel step is checked against the window's solution, which holds vision,
 the floor and the earlier steps: the planar residual (yaw, x, y) of its factor at the solution, in the step's own
-sigmas (``factors.wheel_step_sigmas``). Beyond ``backend.odometry.slip_switch_k`` (default: the robust loss's
-threshold) the step is taken for slip or a skid: its planar factor is removed and the window solved again without
+sigmas (``factors.wheel_step_sigmas``). Beyond the chi-square quantile at ``backend.odometry.slip_switch_confidence``
+(0.9999: 4.6 sigma; a switch is a hard decision, for gross errors only, the robust loss weighs the rest) the step
+is taken for slip or a skid: its planar factor is removed and the window solved again without
 it (a switchable constraint whose switch is decided once, on the solution, instead of a weight re-decided at each
 linearization). A slip is a distance error: when the step's heading alone agrees with the solution (its own 1-D
 residual within the chi-square threshold) the heading is kept and only the distance left free; otherwise (a
@@ -22,9 +23,11 @@ out of the floor-against-wheels test (``cue_check.py``): a slipping wheel says n
 Only a step that goes through the wheel calibration is judged, i.e. once the floor is in view and holds the
 window's scale: where the wheels alone set the scale, the solution's scale is the wheels' own history, a slip
 pulls the solution with it, and the correct steps after it would be judged against the slipped scale (on
-held-out streets, where the floor is never tied, judging them made runs 2-15x worse). Where vision is weak the
-solution follows the wheels, their residuals stay small and nothing is switched: the wheels carry the run, as
-before.
+held-out streets, where the floor is never tied, judging them made runs 2-15x worse). And only at a keyframe with
+at least ``slip_switch_min_observations`` projection factors: where vision hardly sees the step, the solution may
+be the wrong one (a rocking base's feature simulation: steps 7-12 sigma off at keyframes with 2-7 observations,
+switched off, took a run from 0.011 to 3.4 m). Elsewhere, where vision is weak, the solution follows the wheels,
+their residuals stay small and nothing is switched: the wheels carry the run, as before.
 
 Reported per keyframe in ``stats.csv`` (``wheel_step_sigmas``, ``wheel_slip``) and over the run in the summary
 (``wheel_slip``: the steps switched off and the frames they span).
@@ -84,8 +87,9 @@ class WheelSlipSwitch:
         o = cfg.odometry
         self.enabled = o.slip_switch
         self.threshold = (float(o.slip_switch_k) if o.slip_switch_k is not None
-                          else fac.threshold(o.robust_k, 3, cfg))
-        self.heading_threshold = fac.threshold(None, 1, cfg)  # the heading's own residual, 1-D
+                          else fac.robust_threshold(3, o.slip_switch_confidence))
+        self.heading_threshold = fac.robust_threshold(1, o.slip_switch_confidence)  # the heading's own residual
+        self.min_observations = o.slip_switch_min_observations
         self._pending: _Pending | None = None
         self.last: SlipJudgement | None = None  # this keyframe's judgement (None: no wheel step judged)
         self._in_slip = False
@@ -104,13 +108,15 @@ class WheelSlipSwitch:
         """The window was reset: the pending step's factor is gone with the old smoother."""
         self._pending = None
 
-    def judge(self, frame_index: int, smoother, estimate: gtsam.Values, new_indices: list[int]
-              ) -> tuple[int, gtsam.NonlinearFactorGraph] | None:
+    def judge(self, frame_index: int, smoother, estimate: gtsam.Values | None, new_indices: list[int],
+              n_observations: int) -> tuple[int, gtsam.NonlinearFactorGraph] | None:
         """When the solution ``estimate`` rejects the new wheel step: the smoother's index of its planar factor
         (to be removed) and what replaces it (its heading alone, or nothing); else None. Records the judgement
-        in ``last``."""
+        in ``last``. A step whose keyframe holds fewer than ``slip_switch_min_observations`` projection factors
+        (``n_observations``) is not judged: vision does not constrain it, and a wrong solution would switch good
+        wheels off."""
         p, self._pending = self._pending, None
-        if p is None or p.slot >= len(new_indices):
+        if p is None or estimate is None or p.slot >= len(new_indices) or n_observations < self.min_observations:
             return None
         index = int(new_indices[p.slot])
         r = fac.wheel_step_sigmas(self.cfg, smoother.getFactors().at(index), estimate, p.odom.T_prev_cur,

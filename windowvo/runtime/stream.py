@@ -17,7 +17,10 @@ The wheels' own clock may be ahead of or behind the camera's: the offset is esti
 offset (``backend.odometry.time_offset``; :meth:`Odometry.wheels_on_camera_clock`).
 
 The causal pose of a frame is the newest keyframe estimate as it was right after that keyframe
-was added, moved on to the frame's time by the wheels (held without wheels). The smoothed
+was added, moved on to the frame's time by the wheels. Without wheels it is moved on along the window's
+last keyframe step (constant velocity), by the share of that step the frame has come: its parallax to the
+newest keyframe over that keyframe's own parallax to the one before (``motion_share``; a standstill has
+none, so the pose holds). The smoothed
 trajectory refines every keyframe with up to ``backend.window_keyframes`` later ones and places
 frames between keyframes along the keyframe segment.
 """
@@ -39,7 +42,7 @@ from ..config import Config, WheelClockMode, load_robot_config, robot_config_fro
 from ..errors import WindowVOError
 from ..frontend.frontend import Frontend
 from ..frontend.tracker import resolve_detection_order
-from ..geometry import interpolate_T
+from ..geometry import interpolate_T, inv_T
 from ..io.odometry import WheelBuffer, WheelOdometry
 from ..io.trajectory import Trajectory
 from ..types import BackendOutput, BackendStatus, Frame, FrameEstimate, FrontendOutput, OdometryStep
@@ -56,6 +59,19 @@ CLOCK_CHAIN = 200
 CLOCK_INTERVALS = 100_000
 # The offset is re-estimated (and the one applied to the wheel readings updated) every this many new intervals.
 CLOCK_UPDATE_EVERY = 10
+# Without wheels a frame's causal pose moves along the last keyframe step by its share of it (parallax over the
+# keyframe's own): not beyond this many steps, and held when the keyframe's own parallax was below this (px; a
+# keyframe made by time or track loss at a standstill says nothing of a step).
+MOTION_SHARE_MAX = 2.0
+MOTION_SHARE_MIN_PARALLAX_PX = 2.0
+
+
+def _last_step(bo: BackendOutput) -> np.ndarray | None:
+    """T_base(k-1)_base(k) of the window's two newest keyframes as this result gives them (None: one keyframe)."""
+    frames = sorted(bo.keyframe_poses)
+    if len(frames) < 2:
+        return None
+    return inv_T(bo.keyframe_poses[frames[-2]]) @ bo.keyframe_poses[frames[-1]]
 
 
 @dataclass
@@ -69,6 +85,9 @@ class TrackedFrame:
     odom: OdometryStep | None  # wheel step since the previous keyframe (keyframes only)
     note: str = ""
     wheel_delta: np.ndarray | None = None  # T_base(last keyframe)_base(this frame) from the wheels, at tracking time
+    # Without wheels: how far along a step like the newest keyframe's own this frame has come (its parallax to that
+    # keyframe over the keyframe's parallax to the one before, at tracking time; None: no share known).
+    motion_share: float | None = None
 
     @property
     def is_keyframe(self) -> bool:
@@ -127,6 +146,11 @@ class Odometry:
         self.kf_times: list[float] = []
         self.last_kf_time: float | None = None
         self.last_kf_online: np.ndarray | None = None  # newest keyframe pose as estimated when it was added
+        # Without wheels: the window's last keyframe step (T_base(k-1)_base(k), smoothed, as the newest result gave
+        # it), the newest keyframe's parallax to the one before, and the last tracked frame's share of that step.
+        self.kf_step: np.ndarray | None = None
+        self._kf_step_parallax: float | None = None
+        self._last_share: float | None = None
         self.kf_pose_by_frame: dict[int, np.ndarray] = {}  # latest smoothed T_world_base per keyframe
         self.notes: list[str] = []
         self._n_tracked = 0
@@ -261,20 +285,43 @@ class Odometry:
         if self.last_kf_time is not None:
             tr.wheel_delta = (odo.delta(self.last_kf_time, tr.timestamp)
                               if odo is not None and tr.timestamp > self.last_kf_time else np.eye(4))
+        if odo is None:
+            tr.motion_share = self._motion_share(tr.frontend)
         return tr
+
+    def _motion_share(self, fo: FrontendOutput | None) -> float | None:
+        """Without wheels, the share of the newest keyframe's step a frame has come (see ``TrackedFrame``); a skipped
+        frame keeps the last tracked frame's, a keyframe starts its own step."""
+        if fo is None:
+            return self._last_share
+        if fo.is_keyframe:
+            self._kf_step_parallax = fo.parallax_px
+            share: float | None = 0.0
+        elif self._kf_step_parallax is None or not self._kf_step_parallax >= MOTION_SHARE_MIN_PARALLAX_PX:
+            share = None
+        else:
+            share = float(np.clip(fo.parallax_px / self._kf_step_parallax, 0.0, MOTION_SHARE_MAX))
+        self._last_share = share
+        return share
 
     def resolve(self, tr: TrackedFrame, bo: BackendOutput | None) -> FrameEstimate:
         """Apply a keyframe's back-end result (frames in order) and give the frame its causal pose."""
         note = tr.note
         if bo is not None:
             self.last_kf_online = bo.T_world_base.copy()
+            self.kf_step = _last_step(bo)
             self.kf_pose_by_frame.update(bo.earlier_keyframe_poses)
             self.kf_pose_by_frame.update(bo.keyframe_poses)
             if bo.status is BackendStatus.RECOVERED:
                 note = _join_notes(note, "backend reset")
             if bo.metric_start:
                 note = _join_notes(note, "metric from here (the floor came into view; trajectory so far rescaled)")
-        T = np.eye(4) if self.last_kf_online is None or tr.wheel_delta is None else self.last_kf_online @ tr.wheel_delta
+        if self.last_kf_online is None or tr.wheel_delta is None:
+            T = np.eye(4)
+        elif tr.motion_share is not None and self.kf_step is not None:  # no wheels: along the last keyframe step
+            T = self.last_kf_online @ interpolate_T(np.eye(4), self.kf_step, tr.motion_share)
+        else:
+            T = self.last_kf_online @ tr.wheel_delta
         self.frames.append((tr.index, tr.timestamp))
         self.online.append(T)
         fo = tr.frontend
