@@ -17,7 +17,8 @@ The wheels' own clock may be ahead of or behind the camera's: the offset is esti
 offset (``backend.odometry.time_offset``; :meth:`Odometry.wheels_on_camera_clock`).
 
 The causal pose of a frame is the newest keyframe estimate as it was right after that keyframe
-was added, moved on to the frame's time by the wheels. Without wheels it is moved on along the window's
+was added, moved on to the frame's time by the wheels (their step corrected by the online calibration as that
+keyframe's result gave it). Without wheels it is moved on along the window's
 last keyframe step (constant velocity), by the share of that step the frame has come: its parallax to the
 newest keyframe over that keyframe's own parallax to the one before (``motion_share``; a standstill has
 none, so the pose holds). The smoothed
@@ -45,7 +46,7 @@ from ..frontend.tracker import resolve_detection_order
 from ..geometry import interpolate_T, inv_T
 from ..io.odometry import WheelBuffer, WheelOdometry
 from ..io.trajectory import Trajectory
-from ..types import BackendOutput, BackendStatus, Frame, FrameEstimate, FrontendOutput, OdometryStep
+from ..types import BackendOutput, BackendStatus, Frame, FrameEstimate, FrontendOutput, OdometryStep, WheelCalibration
 
 if TYPE_CHECKING:  # GTSAM is loaded only where a back end runs: a pipelined run's main process never needs it
     from ..backend.smoother import SlidingWindowBackend
@@ -64,6 +65,14 @@ CLOCK_UPDATE_EVERY = 10
 # keyframe made by time or track loss at a standstill says nothing of a step).
 MOTION_SHARE_MAX = 2.0
 MOTION_SHARE_MIN_PARALLAX_PX = 2.0
+
+
+def _calibration(bo: BackendOutput) -> WheelCalibration | None:
+    """The online wheel calibration a keyframe's result carries (None: not estimated yet)."""
+    c = (bo.wheel_scale, bo.wheel_yaw_bias_per_m, bo.wheel_yaw_scale)
+    if not all(np.isfinite(c)):
+        return None
+    return WheelCalibration(scale=c[0], yaw_bias_per_m=c[1], yaw_scale=c[2])
 
 
 def _last_step(bo: BackendOutput) -> np.ndarray | None:
@@ -85,6 +94,7 @@ class TrackedFrame:
     odom: OdometryStep | None  # wheel step since the previous keyframe (keyframes only)
     note: str = ""
     wheel_delta: np.ndarray | None = None  # T_base(last keyframe)_base(this frame) from the wheels, at tracking time
+    wheel_distance_m: float = 0.0  # the wheels' distance since the last keyframe, at tracking time
     # Without wheels: how far along a step like the newest keyframe's own this frame has come (its parallax to that
     # keyframe over the keyframe's parallax to the one before, at tracking time; None: no share known).
     motion_share: float | None = None
@@ -149,6 +159,7 @@ class Odometry:
         # Without wheels: the window's last keyframe step (T_base(k-1)_base(k), smoothed, as the newest result gave
         # it), the newest keyframe's parallax to the one before, and the last tracked frame's share of that step.
         self.kf_step: np.ndarray | None = None
+        self.wheel_calibration: WheelCalibration | None = None  # the newest result's online calibration (None: none)
         self._kf_step_parallax: float | None = None
         self._last_share: float | None = None
         self.kf_pose_by_frame: dict[int, np.ndarray] = {}  # latest smoothed T_world_base per keyframe
@@ -283,8 +294,9 @@ class Odometry:
         self._last_t = tr.timestamp
         odo = self.wheels_on_camera_clock()
         if self.last_kf_time is not None:
-            tr.wheel_delta = (odo.delta(self.last_kf_time, tr.timestamp)
-                              if odo is not None and tr.timestamp > self.last_kf_time else np.eye(4))
+            moved = odo is not None and tr.timestamp > self.last_kf_time
+            tr.wheel_delta = odo.delta(self.last_kf_time, tr.timestamp) if moved and odo is not None else np.eye(4)
+            tr.wheel_distance_m = odo.distance(self.last_kf_time, tr.timestamp) if moved and odo is not None else 0.0
         if odo is None:
             tr.motion_share = self._motion_share(tr.frontend)
         return tr
@@ -310,6 +322,7 @@ class Odometry:
         if bo is not None:
             self.last_kf_online = bo.T_world_base.copy()
             self.kf_step = _last_step(bo)
+            self.wheel_calibration = _calibration(bo)
             self.kf_pose_by_frame.update(bo.earlier_keyframe_poses)
             self.kf_pose_by_frame.update(bo.keyframe_poses)
             if bo.status is BackendStatus.RECOVERED:
@@ -320,6 +333,8 @@ class Odometry:
             T = np.eye(4)
         elif tr.motion_share is not None and self.kf_step is not None:  # no wheels: along the last keyframe step
             T = self.last_kf_online @ interpolate_T(np.eye(4), self.kf_step, tr.motion_share)
+        elif self.wheel_calibration is not None:  # the wheels' step less their systematic errors
+            T = self.last_kf_online @ self.wheel_calibration.correct(tr.wheel_delta, tr.wheel_distance_m)
         else:
             T = self.last_kf_online @ tr.wheel_delta
         self.frames.append((tr.index, tr.timestamp))
