@@ -91,23 +91,22 @@ def test_without_wheels_a_standstill_holds_the_causal_pose(short_loop):
 
 def test_the_causal_pose_takes_the_wheel_calibration_off_the_wheels_step(short_loop):
     """Between keyframes the wheels move the causal pose on; once the back end has calibrated them, their step less
-    the calibration (wheels reporting 2% too far and turning 0.01 rad per reported metre too much: 1.02 m and 0.0102 rad in, 1 m and no
-    turn out); before any calibration, the raw step."""
-    seq = load_native(short_loop)
-    vo = windowvo.Odometry(seq.camera)
-    for t, x in ((0.0, 0.0), (1.0, 1.02)):
-        vo.add_wheel_odometry(t, x, 0.0, 0.01 * x)
-    vo.last_kf_time = 0.0
-    raw = vo.resolve(vo._tracked(TrackedFrame(1, 1.0, 0.0, None, None)), BackendOutput(0, 0.0, np.eye(4)))
-    assert raw.T_world_base[0, 3] == pytest.approx(1.02)
-    bo = BackendOutput(0, 0.0, np.eye(4), wheel_scale=1.02, wheel_yaw_bias_per_m=0.01, wheel_yaw_scale=1.0)
-    vo2 = windowvo.Odometry(seq.camera)
-    for t, x in ((0.0, 0.0), (1.0, 1.02)):
-        vo2.add_wheel_odometry(t, x, 0.0, 0.01 * x)
-    vo2.last_kf_time = 0.0
-    est = vo2.resolve(vo2._tracked(TrackedFrame(1, 1.0, 0.0, None, None)), bo)
-    assert est.T_world_base[0, 3] == pytest.approx(1.0, abs=1e-6)
-    assert abs(np.arctan2(est.T_world_base[1, 0], est.T_world_base[0, 0])) < 1e-4
+    the calibration (wheels reporting 2% too far and turning 0.01 rad per reported metre too much: 1.02 m and
+    0.0102 rad in, 1 m and no turn out); before any calibration, the raw step."""
+    camera = load_native(short_loop).camera
+
+    def one_metre(bo: BackendOutput) -> np.ndarray:
+        vo = windowvo.Odometry(camera)
+        for t, x in ((0.0, 0.0), (1.0, 1.02)):
+            vo.add_wheel_odometry(t, x, 0.0, 0.01 * x)
+        vo.last_kf_time = 0.0  # a keyframe at t = 0 (its result: bo)
+        return vo.resolve(vo._tracked(TrackedFrame(1, 1.0, 0.0, None, None)), bo).T_world_base
+
+    raw = one_metre(BackendOutput(0, 0.0, np.eye(4)))
+    assert raw[0, 3] == pytest.approx(1.02)
+    T = one_metre(BackendOutput(0, 0.0, np.eye(4), wheel_scale=1.02, wheel_yaw_bias_per_m=0.01, wheel_yaw_scale=1.0))
+    assert T[0, 3] == pytest.approx(1.0, abs=1e-6)
+    assert abs(np.arctan2(T[1, 0], T[0, 0])) < 1e-6
 
 
 def test_streaming_api_rejects_bad_frames(short_loop):
