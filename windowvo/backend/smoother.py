@@ -381,22 +381,23 @@ class SlidingWindowBackend:
         ts_map = gtsam.FixedLagSmootherKeyTimestampMap()
         for key, t in stamps.items():
             ts_map.insert((key, t))
+        lap = Laps()
         try:
             idx = self.submit(graph, values, ts_map, remove)
-            self._iterate()
+            self._iterate(lap)
             switch = self.slip.judge(self.kf_frame[self.k], self.smoother, self.estimate, idx, n_vis)
             if switch is not None:
                 self.submit(switch[1], gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap(), [switch[0]])
-                self._iterate()
+                self._iterate(lap)
         except RuntimeError:
             # Undo the bookkeeping of this update before the caller resets the window.
             self.lm.forget(new_lms)
             raise
         return idx
 
-    def _iterate(self) -> None:
-        """More Gauss-Newton steps (iSAM2 takes one per update), then the estimate, checked."""
-        lap = Laps()
+    def _iterate(self, lap: Laps) -> None:
+        """More Gauss-Newton steps (iSAM2 takes one per update), then the estimate, checked; ``lap`` gives the
+        update before them and the steps to the iSAM2 stage, the estimate to its own."""
         for _ in range(self.cfg.extra_iterations if self.k > 2 else 2):
             self.smoother.update()
         lap(Stage.BACKEND_ISAM2)

@@ -106,7 +106,7 @@ class WheelSlipSwitch:
 
     def forget(self) -> None:
         """The window was reset: the pending step's factor is gone with the old smoother."""
-        self._pending = None
+        self._pending, self._in_slip = None, False
 
     def judge(self, frame_index: int, smoother, estimate: gtsam.Values | None, new_indices: list[int],
               n_observations: int) -> tuple[int, gtsam.NonlinearFactorGraph] | None:

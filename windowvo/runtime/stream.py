@@ -294,9 +294,10 @@ class Odometry:
         self._last_t = tr.timestamp
         odo = self.wheels_on_camera_clock()
         if self.last_kf_time is not None:
-            moved = odo is not None and tr.timestamp > self.last_kf_time
-            tr.wheel_delta = odo.delta(self.last_kf_time, tr.timestamp) if moved and odo is not None else np.eye(4)
-            tr.wheel_distance_m = odo.distance(self.last_kf_time, tr.timestamp) if moved and odo is not None else 0.0
+            tr.wheel_delta = np.eye(4)
+            if odo is not None and tr.timestamp > self.last_kf_time:
+                tr.wheel_delta = odo.delta(self.last_kf_time, tr.timestamp)
+                tr.wheel_distance_m = odo.distance(self.last_kf_time, tr.timestamp)
         if odo is None:
             tr.motion_share = self._motion_share(tr.frontend)
         return tr
