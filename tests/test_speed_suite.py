@@ -76,3 +76,32 @@ def test_a_failing_child_is_one_line_and_exit_2(tmp_path, monkeypatch, capsys):
     assert cli_bench.main(["--suite", "speed", "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("windowvo.bench: error: speed suite:"), err
+
+
+def test_only_selects_the_speed_suites_sequences(tmp_path, monkeypatch):
+    """``--only`` reaches the speed suite (it ran all five sequences whatever was named)."""
+    from windowvo.cli import bench as cli_bench
+    from windowvo.tools import speed
+
+    timed: list[str] = []
+
+    def fake_case(case, cache, out, repeats=3):
+        timed.append(case.name)
+        p = ProcessTime(1.0, 1.0, 0.01)
+        return SpeedRow(case.name, 10, p, p, repeats, [1.0])
+
+    monkeypatch.setattr(speed, "run_speed_case", fake_case)
+    assert cli_bench.main(["--suite", "speed", "--only", "loop", "--repeats", "1", "--out", str(tmp_path / "o"),
+                           "--cache", str(tmp_path / "c")]) == 0
+    assert timed == ["loop"]
+
+
+@pytest.mark.parametrize("argv", [["--suite", "speed", "--only", "lop"], ["--suite", "stages", "--only", "loop"]])
+def test_only_naming_no_sequence_is_one_line_and_exit_2(tmp_path, capsys, argv):
+    """A name that none of the selected suites holds (a typo), or --only with no suite that has sequences, would run
+    nothing or everything: one line and exit 2, before anything runs."""
+    from windowvo.cli.bench import main
+
+    assert main([*argv, "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("windowvo.bench: error: --only"), err

@@ -42,7 +42,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--cache", default="windowvo_output/bench_cache", help="rendered sequences (reused)")
     p.add_argument("--duration", type=float, default=30.0, help="seconds of each synthetic sequence")
     p.add_argument("--jobs", type=int, default=1, help="sequences run in parallel processes")
-    p.add_argument("--only", nargs="*", help="run only these sequence names")
+    p.add_argument("--only", nargs="*", help="run only these sequence names (of the sequences, scale and speed "
+                   "suites; a name none of the selected suites holds is an error)")
     p.add_argument("--backend-keyframes", type=int, default=5000)
     p.add_argument("--repeats", type=int, default=3, help="speed: alternated pairs of whole processes per sequence "
                    "(the fastest of each counts)")
@@ -162,7 +163,7 @@ def _stages(a, cache: Path, out: Path) -> dict:
 def _speed(a, cache: Path, out: Path) -> dict:
     from ..tools import speed
 
-    return speed.bench_speed(cache, out, a.repeats)
+    return speed.bench_speed(cache, out, a.repeats, a.only)
 
 
 def _bag(cache: Path, out: Path) -> dict:
@@ -177,11 +178,44 @@ def _bag(cache: Path, out: Path) -> dict:
     return bag_res
 
 
+# The suites whose sequences --only selects, and their sequence names.
+ONLY_SUITES = ("sequences", "scale", "speed")
+
+
+def _names(suite: str, duration: float) -> list[str]:
+    from ..tools import scale_suite, speed
+
+    if suite == "sequences":
+        return [c.name for c in synthetic_cases(duration) + kitti_cases()]
+    if suite == "scale":
+        return [c.name for c in scale_suite.suite_cases()]
+    return [c.name for c in speed.speed_cases()]
+
+
+def unknown_only(a) -> str | None:
+    """``--only`` names that no selected suite holds (a typo would run nothing): the error's text, else None."""
+    if not a.only:
+        return None
+    suites = [s for s in a.suite if s in ONLY_SUITES]
+    if not suites:
+        return f"--only selects sequences of the {', '.join(ONLY_SUITES)} suites; none of them is selected"
+    known = {n for s in suites for n in _names(s, a.duration)}
+    missing = [n for n in a.only if n not in known]
+    if missing:
+        return (f"--only: no sequence named {', '.join(missing)} in the {', '.join(suites)} suite(s) "
+                f"(known: {', '.join(sorted(known))})")
+    return None
+
+
 def main(argv=None) -> int:
     a = _parser().parse_args(argv)
     out, cache = Path(a.out), Path(a.cache)
     if a.repeats < 1:
         print(f"windowvo.bench: error: --repeats must be at least 1 (got {a.repeats})", file=sys.stderr)
+        return 2
+    bad_only = unknown_only(a)
+    if bad_only:
+        print(f"windowvo.bench: error: {bad_only}", file=sys.stderr)
         return 2
     if a.set:  # a bad key or value is one line and exit 2, before anything is rendered or run
         try:

@@ -167,13 +167,15 @@ def _pairs(r: SpeedRow) -> str:
     return f"{r.pair_ratio_median:.2f}x ({min(r.pair_ratios):.2f}-{max(r.pair_ratios):.2f})"
 
 
-def bench_speed(cache: Path, out: Path, repeats: int = 3) -> dict:
-    """Every speed case, one after the other (never in parallel: they are timed). The folders are made absolute:
-    each process reads a config file written under ``out``, whose relative paths would be taken from there."""
+def bench_speed(cache: Path, out: Path, repeats: int = 3, only: list[str] | None = None) -> dict:
+    """Every speed case (``only``: those of these names), one after the other (never in parallel: they are timed).
+    The folders are made absolute: each process reads a config file written under ``out``, whose relative paths
+    would be taken from there."""
     if repeats < 1:
         raise ValueError(f"--repeats must be at least 1 (got {repeats})")
     cache, out = cache.resolve(), out.resolve()
-    rows = [run_speed_case(c, cache, out / "speed" / c.name, repeats) for c in speed_cases()]
+    cases = [c for c in speed_cases() if not only or c.name in only]
+    rows = [run_speed_case(c, cache, out / "speed" / c.name, repeats) for c in cases]
     print("## Whole-process speed against frame-to-frame chaining (issue #30)\n")
     print(speed_table(rows) + "\n")
     return {"rows": [{**asdict(r), "ratio": r.ratio, "pair_ratio_median": r.pair_ratio_median} for r in rows]}
