@@ -60,3 +60,41 @@ def test_overrides_change_every_way_but_not_its_cue_switches(tmp_path, monkeypat
     assert floor["backend"]["ground"]["robust"] == "cauchy" and wheels["backend"]["ground"]["robust"] == "cauchy"
     assert floor["backend"]["use_odometry"] is False  # the way's switch, applied after the overrides
     assert wheels["backend"]["ground"]["enabled"] is False
+
+
+def test_a_seeded_way_runs_in_its_own_folder_with_its_seed(tmp_path, monkeypatch):
+    """``--seeds``: a run of a way with the floor's RANSAC seed k writes to ``<way>/seed<k>`` and sets
+    ``backend.ground.seed``; the way's own cue switch still applies; no seed: the config's, the folder as before."""
+    case = ss.rendered_cases()[0]
+    monkeypatch.setattr(ss, "ensure_rendered", lambda c, cache: tmp_path / c.name)
+    seeded = ss.case_config(case, tmp_path, tmp_path, "floor", ("backend.ground.robust=cauchy",), seed=2)
+    assert seeded["output"] == str(tmp_path / case.name / "floor" / "seed2")
+    assert seeded["backend"]["ground"]["seed"] == 2 and seeded["backend"]["ground"]["robust"] == "cauchy"
+    assert seeded["backend"]["use_odometry"] is False
+    plain = ss.case_config(case, tmp_path, tmp_path, "floor")
+    assert plain["output"] == str(tmp_path / case.name / "floor") and "seed" not in plain["backend"].get("ground", {})
+
+
+def test_the_seeds_runs_give_their_medians_and_spread():
+    runs = [{"se3": 0.02, "sim3": 0.010, "metric": True}, {"se3": 0.01, "sim3": 0.012, "metric": True},
+            {"se3": 0.04, "sim3": 0.011, "metric": True}]
+    way = ss._median_of_runs(runs)
+    assert way["se3"] == 0.02 and way["sim3"] == 0.011 and way["se3_runs"] == [0.02, 0.01, 0.04]
+    assert way["seed_spread"] == 4.0
+    assert ss._median_of_runs(runs[:1]) == runs[0]  # one run: the run itself
+    rows = [_row("a", 0.02, 0.01, 0.04, 0.5), _row("b", 0.01, 0.02, 0.01, 0.005)]
+    rows[0]["fused"], rows[0]["floor"] = way, {**ss._median_of_runs(runs[:2]), "se3": 0.01}
+    rows[1]["fused"], rows[1]["floor"] = ss._median_of_runs(runs[:2]), ss._median_of_runs(runs[1:])
+    s = ss.summary(rows)
+    assert s["seeds"] == 3
+    assert s["fused_seed_spread_within_1.1x"] == 0.0  # 4x and 2x apart
+    assert "median over 3 seeds" in ss.summary_text(s)
+
+
+def test_bad_seeds_are_one_line_and_exit_2(tmp_path, capsys):
+    from windowvo.cli.bench import main
+
+    for argv in (["--seeds", "0"], ["--seeds", "2", "--set", "backend.ground.seed=1"]):
+        assert main(["--suite", "scale", *argv, "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("windowvo.bench: error: --seeds"), err

@@ -47,6 +47,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--backend-keyframes", type=int, default=5000)
     p.add_argument("--repeats", type=int, default=3, help="speed: alternated pairs of whole processes per sequence "
                    "(the fastest of each counts)")
+    p.add_argument("--seeds", type=int, default=1, help="scale: run the ways that use the floor (fused, floor only) "
+                   "with this many seeds of the floor plane's RANSAC (backend.ground.seed 0..N-1) and compare each "
+                   "way's median: one run's ATE moves by chance, the floor only's by over 10%% on half the sequences")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="config override for every windowvo run of the sequences, scale and stages suites (repeatable; "
                         "the scale suite's cue switches of each way still apply), "
@@ -143,7 +146,7 @@ def _scale(a, out: Path, cache: Path) -> dict:
     cases = scale_suite.suite_cases()
     if a.only:
         cases = [c for c in cases if c.name in a.only]
-    rows = scale_suite.run_suite(cases, cache / "scale", out / "scale", a.jobs, tuple(a.set))
+    rows = scale_suite.run_suite(cases, cache / "scale", out / "scale", a.jobs, tuple(a.set), a.seeds)
     s = scale_suite.write_results(rows, out / "scale")
     print("## Scale suite: fused cues against each cue alone (ATE m)\n")
     print(scale_suite.table(rows) + "\n")
@@ -216,6 +219,12 @@ def main(argv=None) -> int:
     bad_only = unknown_only(a)
     if bad_only:
         print(f"windowvo.bench: error: {bad_only}", file=sys.stderr)
+        return 2
+    if a.seeds < 1:
+        print(f"windowvo.bench: error: --seeds must be at least 1 (got {a.seeds})", file=sys.stderr)
+        return 2
+    if a.seeds > 1 and any(kv.split("=", 1)[0].strip() == "backend.ground.seed" for kv in a.set):
+        print("windowvo.bench: error: --seeds sets backend.ground.seed itself: not also with --set", file=sys.stderr)
         return 2
     if a.set:  # a bad key or value is one line and exit 2, before anything is rendered or run
         try:
