@@ -7,9 +7,11 @@ sequential run mode twice: with ``backend.odometry.time_offset: estimate`` (the 
 against the true offset, its sigma, whether it was applied and from when, and the ATE SE(3) over the unshifted
 sequence's run with the default config; then the geometric mean and the worst of those ratios for the offsets that are not zero.
 
-    python scripts/wheel_clock_sweep.py SEQ [SEQ ...] --work DIR [--offsets-ms 0,15,30,50,-20]
+    python scripts/wheel_clock_sweep.py SEQ [SEQ ...] --work DIR [--offsets-ms 0,15,30,50,-20] [--set KEY=VALUE ...]
 
-Results in DIR/wheel_clock_sweep.json (runs already there are not repeated).
+``--set`` (repeatable) changes every run's config, e.g. to compare two settings of the wheel model, each in its own
+``--work`` folder. Results in DIR/wheel_clock_sweep.json (runs already there are not repeated; a folder holds the
+runs of one set of overrides).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import sys
 from pathlib import Path
 
 from windowvo.config import apply_overrides, config_from_dict
+from windowvo.errors import WindowVOError
 from windowvo.runtime.job import run_job
 from windowvo.synth.generate import shift_wheel_clock
 
@@ -36,9 +39,9 @@ def shifted(seq: Path, offset_ms: float, work: Path) -> Path:
     return out if out.exists() else shift_wheel_clock(seq, out, offset_ms / 1000.0)
 
 
-def run_once(seq: Path, mode: str, out: Path) -> dict:
+def run_once(seq: Path, mode: str, out: Path, overrides: list[str] | None = None) -> dict:
     data = apply_overrides({"sequence": str(seq), "output": str(out), "progress": False, "viz": {"rerun": "off"},
-                            "run_mode": "sequential"}, [f"backend.odometry.time_offset={mode}"])
+                            "run_mode": "sequential"}, [*(overrides or []), f"backend.odometry.time_offset={mode}"])
     report = run_job(config_from_dict(data))
     c = report.result.wheel_time_offset
     assert report.accuracy is not None and c is not None, "the sweep needs ground truth and wheels"
@@ -52,7 +55,14 @@ def main() -> int:
     p.add_argument("sequences", nargs="+", type=Path)
     p.add_argument("--work", type=Path, required=True, help="folder for the shifted sequences, runs and results")
     p.add_argument("--offsets-ms", default="0,15,30,50,-20", help="comma-separated offsets (ms); 0 is always run")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override for every run (repeatable; the time_offset mode of each run still applies)")
     a = p.parse_args()
+    try:  # a bad key or value: one line, exit 2, before anything runs
+        config_from_dict(apply_overrides({"sequence": ".", "output": str(a.work), "progress": False}, list(a.set)))
+    except WindowVOError as err:
+        print(f"wheel_clock_sweep: error: {err}", file=sys.stderr)
+        return 2
     for seq in a.sequences:  # bad input: one line, exit 2
         missing = [n for n in ("odometry.csv", "groundtruth.txt") if not (seq / n).is_file()]
         if missing:
@@ -64,6 +74,10 @@ def main() -> int:
     a.work.mkdir(parents=True, exist_ok=True)
     store = a.work / "wheel_clock_sweep.json"
     res = json.loads(store.read_text()) if store.exists() else {}
+    if res.setdefault("overrides", list(a.set)) != list(a.set):
+        print(f"wheel_clock_sweep: error: {a.work} holds runs made with --set {res['overrides'] or '(none)'}; "
+              "use another --work for other overrides", file=sys.stderr)
+        return 2
     ratios: dict[str, list[float]] = {m: [] for m in MODES}
     print("| sequence | offset ms | estimate error ms (sigma) | applied from s | ATE m estimate / off | "
           "over plain: estimate / off |\n|---|---|---|---|---|---|")
@@ -72,7 +86,7 @@ def main() -> int:
             for mode in MODES:
                 key = f"{seq.name}|{off:+.0f}|{mode}"
                 if key not in res:
-                    res[key] = run_once(shifted(seq, off, a.work), mode, a.work / "runs" / key.replace("|", "_"))
+                    res[key] = run_once(shifted(seq, off, a.work), mode, a.work / "runs" / key.replace("|", "_"), a.set)
                     store.write_text(json.dumps(res, indent=1))
             plain = res[f"{seq.name}|+0|estimate"]["ate"]  # the same run (default config) without the offset
             est, off_run = res[f"{seq.name}|{off:+.0f}|estimate"], res[f"{seq.name}|{off:+.0f}|off"]
