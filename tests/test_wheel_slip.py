@@ -212,3 +212,28 @@ def test_the_scale_suites_worst_fused_run_gains_from_the_switch(seq_factory, tmp
     assert on is not None and off is not None
     print(f"{case.name}: fused ATE {on.ate_se3_rmse_m:.4f} m with the switch, {off.ate_se3_rmse_m:.4f} without")
     assert on.ate_se3_rmse_m <= 0.8 * off.ate_se3_rmse_m
+
+
+def _record(i: int, t: float, keyframe: bool, slip: bool | None = None):
+    from windowvo.types import FrameRecord
+
+    return FrameRecord(i, t, 100, 90, 0, 10.0, 10.0, 0.9, 1.0, 0.5, keyframe, "", "", "ok", 50, 0.5, 1.0, 1.0,
+                       wheel_slip=slip)
+
+
+@pytest.mark.parametrize("slip", [False, True])
+def test_frames_inside_a_slipped_step_are_placed_by_time_not_by_the_slipping_wheels(slip):
+    """The smoothed trajectory places a frame between two keyframes at its share of the wheels' distance; where the
+    back end took that step's wheels for slip (their distance 40-50% too long from the slip's start on) the share is
+    the frame's time instead. The journal's rule (what ``--resume`` rebuilds) is the run's: frame 1 of a step whose
+    wheels put two thirds of it there lies at 2/3 of the segment, or at 1/3 (its time) when the step slipped."""
+    from windowvo.geometry import make_T
+    from windowvo.runtime.journal import JournalContents, resumed_trajectory
+
+    T0, T1 = make_T(np.eye(3), [0.0, 0.0, 0.0]), make_T(np.eye(3), [0.3, 0.0, 0.0])
+    records = [_record(0, 0.0, True), _record(1, 0.1, False), _record(2, 0.2, False), _record(3, 0.3, True, slip)]
+    j = JournalContents(header={}, records=records, online=[np.eye(4)] * 4, wheel_m=[0.0, 0.2, 0.26, 0.3],
+                        final_keyframes={0: (0.0, T0), 3: (0.3, T1)})
+    x = resumed_trajectory(j).T_world_base[:, 0, 3]
+    expected = [0.0, 0.1, 0.2, 0.3] if slip else [0.0, 0.2, 0.26, 0.3]
+    assert np.allclose(x, expected), x

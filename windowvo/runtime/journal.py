@@ -285,11 +285,12 @@ def resumed_trajectory(j: JournalContents) -> Trajectory:
 
 
 def _fraction(j: JournalContents, i: int, r0: int, r1: int, t: float, t0: float, t1: float) -> float:
-    """How far frame row ``i`` is along the keyframe segment ``r0 -> r1`` (the finished run's rule)."""
+    """How far frame row ``i`` is along the keyframe segment ``r0 -> r1`` (the finished run's rule: by wheel distance,
+    by time without wheels or where the back end took the segment's wheel step for slip)."""
     s = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
     w, w1 = j.wheel_m[i], j.wheel_m[r1]
     consecutive = not any(r.is_keyframe for r in j.records[r0 + 1:r1])
-    if consecutive and w is not None and w1 is not None and w1 > 1e-3:
+    if consecutive and not j.records[r1].wheel_slip and w is not None and w1 is not None and w1 > 1e-3:
         s = w / w1
     return float(np.clip(s, 0.0, 1.0)) if math.isfinite(s) else 0.0
 

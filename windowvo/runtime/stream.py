@@ -163,6 +163,9 @@ class Odometry:
         self._kf_step_parallax: float | None = None
         self._last_share: float | None = None
         self.kf_pose_by_frame: dict[int, np.ndarray] = {}  # latest smoothed T_world_base per keyframe
+        # Keyframes whose wheel step the back end took for slip (backend/wheel_slip.py): the wheel samples within
+        # that step do not tell where the frames between the two keyframes were.
+        self.slipped_kf_frames: set[int] = set()
         self.notes: list[str] = []
         self._n_tracked = 0
         self._last_t: float | None = None
@@ -326,6 +329,8 @@ class Odometry:
             self.wheel_calibration = _calibration(bo)
             self.kf_pose_by_frame.update(bo.earlier_keyframe_poses)
             self.kf_pose_by_frame.update(bo.keyframe_poses)
+            if bo.wheel_slip:
+                self.slipped_kf_frames.add(bo.frame_index)
             if bo.status is BackendStatus.RECOVERED:
                 note = _join_notes(note, "backend reset")
             if bo.metric_start:
@@ -382,10 +387,11 @@ class Odometry:
         """One pose per frame: keyframes from the smoother, the others in between.
 
         Frames between two keyframes are placed along the segment joining them, at the fraction of
-        wheel distance (or time, without wheels) covered so far; frames after the last keyframe follow
-        the wheels (or stay at the last keyframe)."""
+        wheel distance (or time, without wheels, or where the back end took the step's wheels for slip) covered
+        so far; frames after the last keyframe follow the wheels (or stay at the last keyframe)."""
         # Keyframes whose back-end result never came (a run aborted at once) are left out.
         done = [(f, t) for f, t in zip(self.kf_frames, self.kf_times) if f in self.kf_pose_by_frame]
+        kf_f = [f for f, _ in done]
         if not done:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
         kf_poses = [self.kf_pose_by_frame[f] for f, _ in done]
@@ -403,7 +409,7 @@ class Odometry:
             else:
                 t0, t1 = kf_t[j], kf_t[j + 1]
                 s = (t - t0) / (t1 - t0)
-                if odo is not None:
+                if odo is not None and kf_f[j + 1] not in self.slipped_kf_frames:
                     total = odo.distance(t0, t1)
                     if total > 1e-3:
                         s = odo.distance(t0, t) / total
