@@ -94,7 +94,8 @@ def test_the_seeds_runs_give_their_medians_and_spread():
 def test_bad_seeds_are_one_line_and_exit_2(tmp_path, capsys):
     from windowvo.cli.bench import main
 
-    for argv in (["--seeds", "0"], ["--seeds", "2", "--set", "backend.ground.seed=1"]):
-        assert main(["--suite", "scale", *argv, "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c")]) == 2
+    for argv in (["--suite", "scale", "--seeds", "0"], ["--suite", "scale", "--seeds", "2", "--set",
+                 "backend.ground.seed=1"], ["--suite", "speed", "--seeds", "3"]):
+        assert main([*argv, "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c")]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("windowvo.bench: error: --seeds"), err

@@ -12,6 +12,7 @@ from pathlib import Path
 from ..config import apply_overrides, config_from_dict
 from ..errors import WindowVOError, cli_error
 from ..tools import bench as _tools_bench
+from ..tools.scale_suite import SEED_KEY
 from ..tools.bench import (
     CaseKind,
     bench_backend,
@@ -223,8 +224,11 @@ def main(argv=None) -> int:
     if a.seeds < 1:
         print(f"windowvo.bench: error: --seeds must be at least 1 (got {a.seeds})", file=sys.stderr)
         return 2
-    if a.seeds > 1 and any(kv.split("=", 1)[0].strip() == "backend.ground.seed" for kv in a.set):
-        print("windowvo.bench: error: --seeds sets backend.ground.seed itself: not also with --set", file=sys.stderr)
+    if a.seeds > 1 and "scale" not in a.suite:
+        print("windowvo.bench: error: --seeds is for the scale suite (--suite scale)", file=sys.stderr)
+        return 2
+    if a.seeds > 1 and any(kv.split("=", 1)[0].strip() == SEED_KEY for kv in a.set):
+        print(f"windowvo.bench: error: --seeds sets {SEED_KEY} itself: not also with --set", file=sys.stderr)
         return 2
     if a.set:  # a bad key or value is one line and exit 2, before anything is rendered or run
         try:
