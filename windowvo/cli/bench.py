@@ -12,7 +12,6 @@ from pathlib import Path
 from ..config import apply_overrides, config_from_dict
 from ..errors import WindowVOError, cli_error
 from ..tools import bench as _tools_bench
-from ..tools.scale_suite import SEED_KEY
 from ..tools.bench import (
     CaseKind,
     bench_backend,
@@ -29,6 +28,7 @@ from ..tools.bench import (
     synthetic_cases,
 )
 from ..tools.helptext import first_line, plain_help
+from ..tools.scale_suite import SEED_KEY
 
 
 def _parser() -> argparse.ArgumentParser:
