@@ -13,3 +13,10 @@ def test_with_tilt_of_keeps_position_and_heading_and_takes_roll_and_pitch():
     assert np.allclose(R_to_rpy(T[:3, :3]), (0.02, -0.03, 0.7))
     assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3))
     assert np.allclose(with_tilt_of(T_planar, T_planar), T_planar)  # a level pose with its own tilt: unchanged
+
+
+def test_planar_pose_is_a_turn_about_z_at_height_zero():
+    from windowvo.geometry import planar_T, rot_z
+
+    for yaw in np.linspace(-7.0, 7.0, 57):
+        assert np.array_equal(planar_T(0.3, -2.0, float(yaw)), make_T(rot_z(float(yaw)), [0.3, -2.0, 0.0]))

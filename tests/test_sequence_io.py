@@ -205,3 +205,21 @@ def test_wheel_distance_sums_the_samples_strictly_between_the_two_times():
         p0, p1 = w.pose_at(t0)[:2, 3], w.pose_at(t1)[:2, 3]
         pts = np.vstack([p0, np.stack([w.x[inside], w.y[inside]], axis=1), p1])
         assert w.distance(t0, t1) == np.sum(np.hypot(*np.diff(pts, axis=0).T))
+
+
+def test_wheel_pose_is_np_interp_of_x_y_and_yaw_to_the_bit():
+    """``WheelOdometry.pose_at`` interpolates x, y and yaw with one binary search: the same doubles as three
+    ``np.interp`` calls, inside, on every sample, before the first and past the last (clamped), and for nan."""
+    import numpy as np
+
+    from windowvo.geometry import planar_T
+    from windowvo.io.odometry import WheelOdometry
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 300):
+        ts = np.cumsum(rng.uniform(1e-4, 0.05, n)) - 2.0
+        x, y, yaw = (np.cumsum(rng.normal(0.0, 1.0, n)) * scale for scale in (1e-3, 1.0, 1e3))
+        w = WheelOdometry(ts, x, y, yaw)
+        for t in [*rng.uniform(ts[0] - 1.0, ts[-1] + 1.0, 500), *ts, float("nan")]:
+            expected = planar_T(*(float(np.interp(t, ts, v)) for v in (x, y, yaw)))
+            assert np.array_equal(w.pose_at(float(t)), expected, equal_nan=True), (n, t)

