@@ -144,3 +144,22 @@ def test_the_worker_ends_when_the_main_process_is_killed(tmp_path):
     if alive:
         os.kill(worker_pid, signal.SIGKILL)
     assert not alive, "the back-end worker outlived the killed main process"
+
+
+def test_opencv_threads_change_no_result_and_are_put_back(short_loop, tmp_path):
+    """``opencv_threads`` (default 1) only moves OpenCV's work between threads: the same trajectory as OpenCV's own
+    thread count, and the process's count is what it was once the run ends (an application keeps its setting)."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(3)  # not a value either run uses
+    try:
+        outs = {}
+        for n in (1, 0):
+            cfg = make_config(short_loop, tmp_path / f"t{n}", max_frames=90, opencv_threads=n)
+            run_job(cfg)
+            assert cv2.getNumThreads() == 3
+            outs[n] = (tmp_path / f"t{n}" / "trajectory.txt").read_text()
+        assert outs[1] == outs[0]
+    finally:
+        cv2.setNumThreads(before)

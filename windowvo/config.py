@@ -682,6 +682,11 @@ class Config(_Section):
     progress: bool = Field(True, description="progress bar (on a terminal only)")
     run_mode: RunMode = Field(RunMode.PIPELINED, description="pipelined: the back end runs in a worker process "
                               "beside decoding and the front end (both cores, same results); sequential: one process")
+    opencv_threads: int = Field(0, ge=0, le=256, description="OpenCV's worker threads while a run goes (cv2."
+                                "setNumThreads, put back after; the back-end process too); 0: OpenCV's own default "
+                                "(one per core). 1 saves CPU where a core would otherwise idle: run_mode sequential, "
+                                "the 640x480 loop: 0.83x the CPU at the same wall time; pipelined runs: no measurable "
+                                "change (docs/performance.md)")
     camera: CameraConfig | None = Field(None, description="intrinsics and mounting for layouts that do not carry them "
                                                           "(tum, folder, video); for rosbag it wins over camera_info "
                                                           "and /tf_static")

@@ -76,7 +76,11 @@ def _serve(inbox, outbox, parent_pid: int) -> None:
             outbox.put((Reply.DONE, be.scale_report() if be is not None else None))
             return
         if be is None:
-            camera, cfg, use_odometry = msg
+            camera, cfg, use_odometry, n_threads = msg
+            if n_threads > 0:  # the process is the back end's alone: nothing to put back
+                import cv2
+
+                cv2.setNumThreads(n_threads)
             be = SlidingWindowBackend(camera, cfg, use_odometry)
             continue
         fo, odom = msg
@@ -107,8 +111,9 @@ class BackendWorker:
         self.report: ScaleReport | None = None
         self._ready: deque[BackendOutput] = deque()
 
-    def start(self, camera: CameraModel, cfg: BackendConfig, use_odometry: bool) -> None:
-        self._inbox.put((camera, cfg, use_odometry))
+    def start(self, camera: CameraModel, cfg: BackendConfig, use_odometry: bool, opencv_threads: int = 0) -> None:
+        """Build the worker's back end; ``opencv_threads`` (the config's key; 0: OpenCV's default) for its process."""
+        self._inbox.put((camera, cfg, use_odometry, opencv_threads))
 
     def submit(self, fo: FrontendOutput, odom: OdometryStep | None) -> None:
         self._inbox.put((fo, odom))

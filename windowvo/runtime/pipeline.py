@@ -18,7 +18,7 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -114,6 +114,21 @@ def load_static_mask(path: Path | None, shape: tuple[int, int]) -> np.ndarray | 
     return m
 
 
+@contextlib.contextmanager
+def opencv_threads(n: int) -> Iterator[None]:
+    """OpenCV's worker threads set to ``n`` while the block runs, then put back (0: left as they are). The threads
+    are the process's: an application that runs windowvo gets its own setting back when the run ends."""
+    if n <= 0:
+        yield
+        return
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(n)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
 def load_in_background(module: str) -> None:
     """Import ``module`` in a thread of its own while this one waits for something else (the GIL is free then):
     the evaluator's evo and scipy (about 0.4 s) while the back-end process finishes its last keyframes. A failure
@@ -157,7 +172,7 @@ class Pipeline:
         self.worker: BackendWorker | None = None
         if pipelined:
             self.worker = worker if worker is not None else BackendWorker()
-            self.worker.start(cam, cfg.backend, self.use_odometry)
+            self.worker.start(cam, cfg.backend, self.use_odometry, cfg.opencv_threads)
         self._pending: deque[tuple[TrackedFrame, Frame | None]] = deque()
         self._give_up: Callable[[], bool] = lambda: False  # stop waiting for the worker (a signal while draining)
         self._journal = TumJournal(cfg.output / "trajectory_online.txt", ONLINE_HEADER + " (run in progress)") \
@@ -210,7 +225,7 @@ class Pipeline:
         still waited for, unless one more signal comes (``runtime/stop.py``)."""
         t_start = time.perf_counter()
         interrupted = False
-        with stop.guarded(stop.Phase.DEFER):
+        with stop.guarded(stop.Phase.DEFER), opencv_threads(self.cfg.opencv_threads):
             try:
                 self._loop()
             except stop.Interrupted:
