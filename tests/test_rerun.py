@@ -22,7 +22,7 @@ from windowvo.runtime.job import JobReport, load_sequence
 from windowvo.runtime.outputs import write_outputs
 from windowvo.runtime.pipeline import Pipeline, RunResult
 from windowvo.types import FrameEstimate
-from windowvo.viz.rerun_logger import LEGEND_ROWS_SHARE, RerunLogger, tail_starts
+from windowvo.viz.rerun_logger import LEGEND_ROWS_SHARE, RerunLogger, tail_starts, time_columns
 
 N_FRAMES = 80
 
@@ -361,3 +361,17 @@ def test_track_tails_start_where_each_track_was_first_seen_in_the_history():
             assert np.all(np.isnan(got[i])), tid
     assert tail_starts([], query).shape == (45, 2)
     assert tail_starts(history, query[:0]).shape == (0, 2)
+
+
+def test_time_columns_are_rerun_s_own_conversion_of_the_seconds():
+    """``time_columns`` hands rerun nanoseconds (its list-of-floats path converts one by one in Python): the same
+    stamps to the nanosecond as rerun's conversion of the seconds, on the sequence clock and on Unix time."""
+    import rerun as rr
+
+    rng = np.random.default_rng(2)
+    for epoch, base in ((False, 0.0), (True, 1.7e9)):
+        for half in (0.0, 0.5e-9, 2.5e-9):  # ties of the rounding too
+            times = [float(t) for t in base + half + np.cumsum(rng.uniform(0.0, 0.1, 300))]
+            ours = time_columns(list(range(300)), times, epoch)[1].times
+            theirs = rr.TimeColumn("time", timestamp=times) if epoch else rr.TimeColumn("time", duration=times)
+            assert ours.equals(theirs.times), (epoch, half)

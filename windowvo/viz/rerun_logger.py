@@ -272,8 +272,12 @@ def tail_starts(history: list[tuple[np.ndarray, np.ndarray]], ids: np.ndarray) -
 
 
 def time_columns(frames: list[int], times: list[float], epoch: bool) -> list[rr.TimeColumn]:
-    """The ``frame`` and ``time`` timelines of rows sent as columns (``time``: Unix time or the sequence clock)."""
-    clock = rr.TimeColumn("time", timestamp=times) if epoch else rr.TimeColumn("time", duration=times)
+    """The ``frame`` and ``time`` timelines of rows sent as columns (``time``: Unix time or the sequence clock).
+    The times go to rerun as nanoseconds, rounded as ``set_time`` rounds seconds: a list of floats would be
+    converted one by one in Python (a tenth of the recording thread's time)."""
+    ns = np.round(np.asarray(times, dtype=np.float64) * 1e9).astype(np.int64)
+    clock = (rr.TimeColumn("time", timestamp=ns.astype("datetime64[ns]")) if epoch
+             else rr.TimeColumn("time", duration=ns.astype("timedelta64[ns]")))
     return [rr.TimeColumn("frame", sequence=frames), clock]
 
 
