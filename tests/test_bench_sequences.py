@@ -233,3 +233,18 @@ def test_sequences_table_kitti_columns():
     # 3% too short, segments of 100-100.1 m (and 200-200.1 m): 3.00 % to two decimals
     assert cells[3]["t_rel % (100-800 m)"] == "3.00" and cells[3]["r_rel deg/100 m (100-800 m)"] == "0.000"
     assert "t_rel / r_rel: the KITTI odometry metric" in bench.sequences_caption([short, long])
+
+
+def test_missing_kitti_excerpts_are_said_not_silently_dropped(tmp_path, monkeypatch):
+    """A suite with KITTI rows run where ``../shared/data`` is not beside the checkout (a git worktree) says so in one
+    note; with both excerpts there, or with suites that have no KITTI rows, it says nothing."""
+    from windowvo.tools import bench as tools_bench
+
+    monkeypatch.setattr(tools_bench, "SHARED_DATA", tmp_path / "nowhere")
+    note = bench_cli.missing_kitti_note(["scale"])
+    assert note is not None and "kitti06_000-050" in note and "left out" in note
+    assert bench_cli.missing_kitti_note(["frontend", "backend"]) is None
+    for name in bench_cli.KITTI_EXCERPTS:
+        (tmp_path / "data" / name).mkdir(parents=True)
+    monkeypatch.setattr(tools_bench, "SHARED_DATA", tmp_path / "data")
+    assert bench_cli.missing_kitti_note(["sequences", "speed"]) is None
