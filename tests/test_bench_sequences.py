@@ -244,7 +244,7 @@ def test_missing_kitti_excerpts_are_said_not_silently_dropped(tmp_path, monkeypa
     note = bench_cli.missing_kitti_note(["scale"])
     assert note is not None and "kitti06_000-050" in note and "left out" in note
     assert bench_cli.missing_kitti_note(["frontend", "backend"]) is None
-    for name in bench_cli.KITTI_EXCERPTS:
+    for name in tools_bench.KITTI_EXCERPTS:
         (tmp_path / "data" / name).mkdir(parents=True)
     monkeypatch.setattr(tools_bench, "SHARED_DATA", tmp_path / "data")
     assert bench_cli.missing_kitti_note(["sequences", "speed"]) is None

@@ -147,8 +147,9 @@ def test_the_worker_ends_when_the_main_process_is_killed(tmp_path):
 
 
 def test_opencv_threads_change_no_result_and_are_put_back(short_loop, tmp_path):
-    """``opencv_threads`` (default 1) only moves OpenCV's work between threads: the same trajectory as OpenCV's own
-    thread count, and the process's count is what it was once the run ends (an application keeps its setting)."""
+    """``opencv_threads`` only moves OpenCV's work between threads: 1 gives the same trajectory as OpenCV's own thread
+    count (0, the default; on a one-core machine both are one thread and that half cannot fail), and the process's
+    count is what it was once the run ends (an application keeps its setting)."""
     import cv2
 
     before = cv2.getNumThreads()

@@ -212,7 +212,6 @@ def unknown_only(a) -> str | None:
 
 
 KITTI_SUITES = ("sequences", "scale", "speed", "stages")
-KITTI_EXCERPTS = ("kitti06_000-050", "kitti01_000-050")
 
 
 def missing_kitti_note(suites: list[str]) -> str | None:
@@ -221,7 +220,7 @@ def missing_kitti_note(suites: list[str]) -> str | None:
     without a word."""
     if not any(s in KITTI_SUITES for s in suites):
         return None
-    missing = [n for n in KITTI_EXCERPTS if not (_tools_bench.SHARED_DATA / n).is_dir()]
+    missing = [n for n in _tools_bench.KITTI_EXCERPTS if not (_tools_bench.SHARED_DATA / n).is_dir()]
     if not missing:
         return None
     return (f"the KITTI excerpts {', '.join(missing)} are not in {_tools_bench.SHARED_DATA} (../shared/data beside "

@@ -52,6 +52,7 @@ from ..config import apply_overrides, config_from_dict
 from .kitti_columns import cell, kitti_errors, shown_columns
 
 SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"  # ../shared/data beside the repository
+KITTI_EXCERPTS = ("kitti06_000-050", "kitti01_000-050")  # the real excerpts the suites run, in SHARED_DATA
 
 
 # The run "without ground cue": windowvo as it was before the metric-scale work (#11).
@@ -118,7 +119,7 @@ def kitti_cases() -> list[SeqCase]:
     """Each excerpt once per synthetic wheel scale error (the first keeps the excerpt's name), and once
     without wheels (monocular: the road at camera 0's height is the only scale source)."""
     out = []
-    for name in ("kitti06_000-050", "kitti01_000-050"):
+    for name in KITTI_EXCERPTS:
         if (SHARED_DATA / name).is_dir():
             for i, err in enumerate(KITTI_WHEEL_SCALE_ERRORS):
                 case_name = name if i == 0 else f"{name}_wheels{100 * err:+.0f}pct"

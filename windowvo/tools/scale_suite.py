@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from .bench import SHARED_DATA
+from .bench import KITTI_EXCERPTS, SHARED_DATA
 
 # The ways whose runs depend on the floor plane's RANSAC seed (the others do not use the floor).
 SEEDED_WAYS = ("fused", "floor")
@@ -114,7 +114,7 @@ def rendered_cases() -> list[ScaleCase]:
 def kitti_scale_cases() -> list[ScaleCase]:
     """Each KITTI excerpt (when ``../shared/data`` is there) with +2% and -3% synthetic wheels."""
     out = []
-    for name in ("kitti06_000-050", "kitti01_000-050"):
+    for name in KITTI_EXCERPTS:
         if (SHARED_DATA / name).is_dir():
             out += [ScaleCase(f"{name}_wheels{100 * e:+.0f}pct", "kitti", kitti_path=SHARED_DATA / name,
                               kitti_wheel_scale_error=e) for e in KITTI_WHEEL_SCALE_ERRORS]
