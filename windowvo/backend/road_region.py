@@ -57,6 +57,7 @@ REFINE_ROUNDS = 3  # rounds of the alternating search (direction, length), each 
 # ridge along which they trade: about 9% of length a degree on a car's camera).
 PITCH_LENGTH_SPAN = 12.0
 REMAP_COLS = 16384  # cv2.remap's map is folded into rows of this many points (it takes fewer than SHRT_MAX columns)
+MEMO_REGIONS = 8  # floor rays a cue keeps (one set per assumed floor)
 BLUR_SIGMA_PX = 1.0  # the images are smoothed before sampling (the warp's linear interpolation then behaves)
 
 
@@ -101,17 +102,26 @@ def pixel_grid(camera: CameraModel, step_px: int) -> tuple[np.ndarray, np.ndarra
     return uv, camera.unproject(uv.astype(float))
 
 
-def region_rays(grid: tuple[np.ndarray, np.ndarray], n_cam: np.ndarray, h: float, cfg: RoadRegionConfig
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """The pixels of ``grid`` (``pixel_grid``) whose rays meet the floor within the region ahead (``near_heights``
-    to ``far_heights`` camera heights along the optical axis, ``half_width_heights`` beside it), and those rays
-    scaled to meet the floor: ``(uv (N, 2) int, X (N, 3))``, X on the plane ``n . X = h``."""
+def floor_rays(grid: tuple[np.ndarray, np.ndarray], n_cam: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels of ``grid`` (``pixel_grid``) whose rays meet the floor ``n . X = h`` ahead, and those rays scaled
+    to meet it: ``(uv (N, 2) int, X (N, 3))``; ``region_rays`` takes its region from them."""
     uv, rays = grid
     ny = rays @ n_cam
     ok = ny > 1e-6
     lam = np.where(ok, h / np.where(ok, ny, 1.0), 0.0)
     X = rays * lam[:, None]
-    ok &= (X[:, 2] >= cfg.near_heights * h) & (X[:, 2] <= cfg.far_heights * h)
+    ok &= X[:, 2] > 0
+    return uv[ok], X[ok]
+
+
+def region_rays(grid: tuple[np.ndarray, np.ndarray], n_cam: np.ndarray, h: float, cfg: RoadRegionConfig,
+                floor: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels of ``grid`` (``pixel_grid``) whose rays meet the floor within the region ahead (``near_heights``
+    to ``far_heights`` camera heights along the optical axis, ``half_width_heights`` beside it), and those rays
+    scaled to meet the floor: ``(uv (N, 2) int, X (N, 3))``, X on the plane ``n . X = h``. ``floor``: ``floor_rays``
+    of the same grid and plane, when the caller has them."""
+    uv, X = floor if floor is not None else floor_rays(grid, n_cam, h)
+    ok = (X[:, 2] >= cfg.near_heights * h) & (X[:, 2] <= cfg.far_heights * h)
     ok &= np.abs(X[:, 0]) <= cfg.half_width_heights * h
     uv, X = uv[ok], X[ok]
     if len(uv) > cfg.max_pixels:  # an even subsample
@@ -125,13 +135,6 @@ def smoothed(image: np.ndarray) -> np.ndarray:
     return cv2.GaussianBlur(image.astype(np.float32), (0, 0), BLUR_SIGMA_PX)
 
 
-def _zncc(a: np.ndarray, b: np.ndarray) -> float:
-    a = a - a.mean()
-    b = b - b.mean()
-    den = float(np.sqrt((a * a).sum() * (b * b).sum()))
-    return float((a * b).sum()) / den if den > 1e-9 else -1.0
-
-
 class _Warp:
     """The correlation of the floor region of image k-1 with image k warped by the floor's homography, per s."""
 
@@ -141,8 +144,12 @@ class _Warp:
         self.camera, self.img1, self.mask1 = camera, img1, mask1
         self.pinhole = not camera.has_distortion
         self.a = img0[uv0[:, 1], uv0[:, 0]].astype(np.float32)
+        a = self.a.astype(np.float64)
+        self.a_sums = np.stack([a, a * a], axis=1)  # (N, 2): a weight row times it gives sum a, sum a^2
+        self.b_sums = np.stack([np.ones_like(a), a], axis=1)  # (N, 2): a sample row times it gives sum b, sum a b
         self.X0, self.R, self.h, self.n_cam = X0, R, h, n_cam  # the region's points on the assumed floor, camera k-1
-        self.RX = (X0 @ R.T).astype(np.float32)  # (R X) for each floor point, camera k
+        self.RX0 = X0 @ R.T  # (R X) for each floor point, camera k
+        self.RX = self.RX0.astype(np.float32)
         self.nX = (X0 @ n_cam).astype(np.float32)  # n . X for each point (h on the floor)
         self.set_direction(t_dir)
         self.n_last = 0
@@ -156,8 +163,8 @@ class _Warp:
         """``(R X, t_dir (n . X))`` (N, 3) each for the region's rays met on the floor ``n . X = h`` instead of the
         assumed one: the points of camera k at length s are the first plus s times the second."""
         d = self.X0 @ n
-        X = self.X0 * (self.h / np.where(d > 1e-9, d, 1e-9))[:, None]
-        return (X @ self.R.T).astype(np.float32), np.outer(X @ n, t_dir).astype(np.float32)
+        f = self.h / np.where(d > 1e-9, d, 1e-9)  # each ray's point on that floor is f times its point on the assumed
+        return (self.RX0 * f[:, None]).astype(np.float32), np.outer(d * f, t_dir).astype(np.float32)
 
     def pixels(self, s: float) -> tuple[np.ndarray, np.ndarray]:
         return self._project(self.RX + np.float32(s) * self.tn)  # R X + s t_dir (n . X), and n . X = h: R X + t
@@ -175,6 +182,19 @@ class _Warp:
         uv[front] = self.camera.project(Xk[front].astype(np.float64))
         return uv, front
 
+    def _project_uv(self, Xk: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``_project`` as the pixels' columns and rows (S, N) float32 each, and which lie in front."""
+        if not self.pinhole:
+            uv, front = self._project(Xk)
+            return np.ascontiguousarray(uv[..., 0]), np.ascontiguousarray(uv[..., 1]), front
+        c = self.camera
+        z = Xk[..., 2]
+        front = z > 1e-6
+        z = np.where(front, z, np.float32(1.0))
+        u = (np.float32(c.fx) * Xk[..., 0] / z + np.float32(c.cx)).astype(np.float32)
+        v = (np.float32(c.fy) * Xk[..., 1] / z + np.float32(c.cy)).astype(np.float32)
+        return u, v, front
+
     def correlation(self, s: float) -> tuple[float, int]:
         return self.correlations(np.array([s]), self.tn[None])[0], self.n_last
 
@@ -185,23 +205,36 @@ class _Warp:
         return self.correlations_of(self.RX[None] + ss.astype(np.float32)[:, None, None] * tns)
 
     def correlations_of(self, Xk: np.ndarray) -> list[float]:
-        """The correlation of each of S candidate warps, given as the region's points in camera k (S, N, 3)."""
-        uv, front = self._project(Xk)  # (S, N, ...)
+        """The correlation of each of S candidate warps, given as the region's points in camera k (S, N, 3).
+
+        All S at once: every point is sampled (those outside image k, behind it or on its mask at the image's
+        corner, with no weight), and each candidate's zero-mean normalised cross-correlation is taken over its own
+        points by weighted sums (float64), so no candidate's points are gathered one by one."""
+        u, v, front = self._project_uv(Xk)  # (S, N) each
         u0, u1, v0, v1 = self.bounds
-        inside = front & (uv[..., 0] >= u0) & (uv[..., 0] <= u1) & (uv[..., 1] >= v0) & (uv[..., 1] <= v1)
+        inside = front & (u >= u0) & (u <= u1) & (v >= v0) & (v <= v1)
+        outside = ~inside
+        u[outside], v[outside] = u0, v0  # sampled, weighed 0
         if self.mask1 is not None:  # samples landing on masked pixels of image k are no floor
-            idx = np.nonzero(inside)
-            p = uv[idx] + 0.5
-            off = self.mask1[p[:, 1].astype(int), p[:, 0].astype(int)] == 0
-            inside[idx[0][off], idx[1][off]] = False
+            inside &= self.mask1[(v + 0.5).astype(int), (u + 0.5).astype(int)] != 0
         counts = inside.sum(axis=1)
         self.n_last = int(counts[-1])
-        b_all = _remap(self.img1, uv[inside])
-        out, at = [], 0
-        for i, n in enumerate(counts):
-            b, at = b_all[at:at + n], at + n
-            out.append(_zncc(self.a[inside[i]], b) if n >= self.min_pixels else -1.0)
-        return out
+        S, N = inside.shape
+        if N < REMAP_COLS:
+            b = cv2.remap(self.img1, u, v, cv2.INTER_LINEAR).astype(np.float64)
+        else:
+            b = _remap(self.img1, np.stack([u.ravel(), v.ravel()], axis=1)).reshape(S, N).astype(np.float64)
+        b *= inside
+        w = inside.astype(np.float64)
+        n = np.maximum(counts, 1).astype(np.float64)
+        sa, saa = (w @ self.a_sums).T  # the sums over each candidate's own points (float64: no cancellation)
+        sb, sab = (b @ self.b_sums).T
+        num = sab - sa * sb / n
+        var_a = np.maximum(saa - sa * sa / n, 0.0)
+        var_b = np.maximum(np.einsum("ij,ij->i", b, b) - sb * sb / n, 0.0)
+        den = np.sqrt(var_a * var_b)
+        ok = (counts >= self.min_pixels) & (den > 1e-9)
+        return [float(num[i] / den[i]) if ok[i] else -1.0 for i in range(S)]
 
     def flow_px(self, s: float) -> float:
         """Median displacement of the region's pixels between s = 0 (rotation only) and s."""
@@ -240,7 +273,8 @@ def _parabola_peak(xs: np.ndarray, cs: np.ndarray, i: int) -> float:
 def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_world_cam0: np.ndarray,
                  T_world_cam1: np.ndarray, n_cam: np.ndarray, h: float, cfg: RoadRegionConfig,
                  grid: tuple[np.ndarray, np.ndarray] | None = None,
-                 masks: tuple[np.ndarray | None, np.ndarray | None] = (None, None)) -> StepFit | None:
+                 masks: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
+                 memo: dict | None = None) -> StepFit | None:
     """The camera step's metric length from the floor region (``img0``/``img1``: ``smoothed`` images of the two
     keyframes; the poses give the rotation and the direction; ``n_cam``, ``h``: the assumed floor in camera k-1).
 
@@ -250,13 +284,24 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
     alternately with the length: it moves the pixels across the image, the length along their rays, so the two
     separate. The floor's pitch is searched with the length (``pitch_search_deg``; the module's docstring). Returns
     the fit, or None when the floor region does not measure it: too few pixels, too little motion of the floor in
-    the image, the correlation below ``min_correlation``, or the length's peak at the edge of its search."""
+    the image, the correlation below ``min_correlation``, or the length's peak at the edge of its search.
+    ``memo``: the caller's store of ``floor_rays`` by assumed floor (they depend on nothing else with one ``grid``)."""
     T_c1_c0 = np.linalg.inv(T_world_cam1) @ T_world_cam0
     R, t = T_c1_c0[:3, :3], T_c1_c0[:3, 3]
     d_est = float(np.linalg.norm(t))
     if d_est < 1e-6 or h <= 0:
         return None
-    uv0, X0 = region_rays(grid if grid is not None else pixel_grid(camera, cfg.step_px), n_cam, h, cfg)
+    grid = grid if grid is not None else pixel_grid(camera, cfg.step_px)
+    key = (n_cam.tobytes(), h)
+    if memo is not None and key in memo:
+        floor = memo[key]
+    else:
+        floor = floor_rays(grid, n_cam, h)
+        if memo is not None:
+            if len(memo) >= MEMO_REGIONS:
+                memo.clear()
+            memo[key] = floor
+    uv0, X0 = region_rays(grid, n_cam, h, cfg, floor)
     if masks[0] is not None:  # the pixels masked in image k-1 are no floor
         usable = masks[0][uv0[:, 1], uv0[:, 0]] > 0
         uv0, X0 = uv0[usable], X0[usable]
@@ -425,6 +470,7 @@ class RoadRegionCue:
     def __init__(self, camera: CameraModel, cfg: RoadRegionConfig, T_base_cam: np.ndarray):
         self.camera, self.cfg, self.T_base_cam = camera, cfg, T_base_cam
         self.grid = pixel_grid(camera, cfg.step_px)
+        self._rays: dict = {}  # measure_step's memo of region rays (for self.grid)
         # (keyframe, smoothed image, mask) of the newest keyframe, and of the one before it
         self._image: tuple[int, np.ndarray, np.ndarray | None] | None = None
         self._previous: tuple[int, np.ndarray, np.ndarray | None] | None = None
@@ -467,15 +513,15 @@ class RoadRegionCue:
         ``pitch_every``-th step; a change of the assumed normal, the floor's attitude learnt, starts the pool over)."""
         c = self.cfg
         if c.pitch_search_deg <= 0:
-            return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, c, self.grid, masks)
+            return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, c, self.grid, masks, self._rays)
         if c.pitch_window <= 1:
-            return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks)
+            return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks, self._rays)
         if self._pitch_from is None or float(n_cam @ self._pitch_from) < math.cos(1e-3):
             self.pitches.clear()
             self._pitch_from = n_cam
         if not self.pitches or self._steps_since_search >= c.pitch_every - 1:
             self._steps_since_search = 0
-            fit = measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks)
+            fit = measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks, self._rays)
             if fit is not None:
                 self.pitches.append(fit.pitch_deg)
         else:
@@ -484,7 +530,7 @@ class RoadRegionCue:
             return None
         pooled = pooled_pitch(list(self.pitches), c.pitch_sigmas)
         on = measure_step(self.camera, img0, img1, T_wc0, T_wc1, rot_x(np.radians(pooled)) @ n_cam, h,
-                          self._on_pitch, self.grid, masks)
+                          self._on_pitch, self.grid, masks, self._rays)
         return None if on is None else replace(on, pitch_deg=pooled)
 
     def take_pending(self) -> RoadStep | None:
