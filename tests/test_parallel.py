@@ -114,21 +114,34 @@ if __name__ == "__main__":
 """
 
 
-@pytest.mark.slow
-def test_the_worker_ends_when_the_main_process_is_killed(tmp_path):
-    """SIGKILL of the main process while the worker holds unread results (more than a pipe's buffer):
-    the worker must still end (an orphan would keep the robot's CPU and the parent's output pipes)."""
-    import os
-    import signal
+_CUT_MESSAGE_SCRIPT = """
+import os, struct, sys, time
+from windowvo.runtime.parallel import BackendWorker
+
+if __name__ == "__main__":
+    w = BackendWorker()
+    print(w.pid, flush=True)
+    time.sleep(float(sys.argv[1]))  # the worker has started and waits for its first message
+    # A message cut short, as a feeder thread killed while writing a keyframe's image leaves it: the header
+    # promises a megabyte, 100 bytes follow, and nothing more will come.
+    os.write(w._inbox._writer.fileno(), struct.pack("!i", 1 << 20) + b"x" * 100)
+    print("cut", flush=True)
+    time.sleep(60)
+"""
+
+
+def _kill_main_and_wait_for_worker(tmp_path, script_text: str, args: list[str], settle_s: float) -> bool:
+    """Run ``script_text`` (it prints its worker's pid first), SIGKILL it after ``settle_s``; True when the worker
+    outlived it by 15 s (it is then killed here)."""
     import subprocess
     import sys
-    import time
 
-    script = tmp_path / "orphan.py"
-    script.write_text(_ORPHAN_SCRIPT)
-    p = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    script = tmp_path / "main.py"
+    script.write_text(script_text)
+    p = subprocess.Popen([sys.executable, str(script), *args], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                         text=True)
     worker_pid = int(p.stdout.readline())
-    time.sleep(8.0)  # the worker processes the 40 keyframes, its results pile up unread
+    time.sleep(settle_s)
     p.send_signal(signal.SIGKILL)
     p.wait(timeout=10)
     deadline = time.time() + 15.0
@@ -143,7 +156,26 @@ def test_the_worker_ends_when_the_main_process_is_killed(tmp_path):
         time.sleep(0.2)
     if alive:
         os.kill(worker_pid, signal.SIGKILL)
-    assert not alive, "the back-end worker outlived the killed main process"
+    return alive
+
+
+@pytest.mark.slow
+def test_the_worker_ends_when_the_main_process_is_killed(tmp_path):
+    """SIGKILL of the main process while the worker holds unread results (more than a pipe's buffer):
+    the worker must still end (an orphan would keep the robot's CPU and the parent's output pipes)."""
+    # the worker processes the 40 keyframes within the 8 s, its results pile up unread
+    assert not _kill_main_and_wait_for_worker(tmp_path, _ORPHAN_SCRIPT, [], 8.0), \
+        "the back-end worker outlived the killed main process"
+
+
+@pytest.mark.slow
+def test_the_worker_ends_when_the_main_process_is_killed_mid_message(tmp_path):
+    """SIGKILL of the main process in the middle of writing a keyframe's message: the worker, blocked reading the
+    rest of it (it holds a copy of the pipe's write end, so no end of file comes), must still end. Found by
+    tests/test_stream.py's SIGKILL test once the keyframes' images went to the worker: an orphan that kept the
+    run's stdout open, so the parent waiting for it hung."""
+    assert not _kill_main_and_wait_for_worker(tmp_path, _CUT_MESSAGE_SCRIPT, ["4"], 6.0), \
+        "the back-end worker outlived the killed main process"
 
 
 def test_opencv_threads_change_no_result_and_are_put_back(short_loop, tmp_path):

@@ -19,6 +19,8 @@ import multiprocessing as mp
 import os
 import queue
 import signal
+import threading
+import time
 from collections import deque
 from collections.abc import Callable
 
@@ -47,6 +49,17 @@ class Reply(str, enum.Enum):
     DONE = "done"  # the final ScaleReport (or None: no keyframe came); the worker ends
 
 
+def _exit_when_orphaned(parent_pid: int) -> None:
+    """The worker's watch: end this process as soon as the main process is gone. The loop below checks that too,
+    but only between messages: a main process killed (SIGKILL) while its feeder thread was writing a keyframe's
+    message (an image is several pipe buffers) leaves the worker blocked for ever reading the rest, since the
+    worker holds a copy of the inbox's write end and so never sees the end of the pipe; it would hold the run's
+    stdout and stderr open with it (measured: a parent waiting for them hung)."""
+    while os.getppid() == parent_pid:
+        time.sleep(POLL_S)
+    os._exit(0)
+
+
 def _serve(inbox, outbox, parent_pid: int) -> None:
     """Worker loop: the first message sets up one back end (camera, config, wheels), then keyframes until
     ``None`` arrives; then its final report. It also ends when the main process is gone (killed with
@@ -57,6 +70,7 @@ def _serve(inbox, outbox, parent_pid: int) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    threading.Thread(target=_exit_when_orphaned, args=(parent_pid,), name="windowvo-orphan-watch", daemon=True).start()
     from ..backend.smoother import SlidingWindowBackend
 
     be = None
