@@ -239,7 +239,7 @@ def test_the_cue_measures_consecutive_keyframes_only():
 
 
 def test_the_region_must_reach_beyond_its_near_edge():
-    assert BackendConfig().ground.road_region.enabled is False  # off by default
+    assert BackendConfig().ground.road_region.enabled is True  # on by default
     with pytest.raises(ConfigError, match="far_heights"):
         config_from_dict({"sequence": "x", "backend": {"ground": {"road_region": {"near_heights": 5.0,
                                                                                   "far_heights": 4.0}}}})
