@@ -158,31 +158,34 @@ def test_the_pooled_pitch_is_the_searches_median_once_it_stands_out_of_their_spr
 
 
 def test_the_cue_measures_on_the_pooled_pitch_of_its_searches():
-    """The set-up's camera pitched 1 deg off, ten consecutive steps, the pitch searched at every second step
-    (``pitch_every``): the steps are measured on the set-up's pitch (lengths off) until five searches agree on the
-    pitch, then on theirs (within 1%)."""
+    """The set-up's camera pitched 1 deg off, ten consecutive steps, a pool of six searches, then a search at every
+    second step (``pitch_every``): the pitch is searched at every step until the pool is full, then at every second;
+    the steps are measured on the set-up's pitch (lengths off) until five searches agree on the pitch, then on
+    theirs (within 1%)."""
     cam, tex = _camera(), _texture(7, lane_lines=False)
     T_bc_wrong = cam.T_base_cam.copy()
     T_bc_wrong[:3, :3] = T_bc_wrong[:3, :3] @ rot_x(np.radians(1.0))
-    cue = RoadRegionCue(cam, RoadRegionConfig(enabled=True, pitch_window=10, pitch_every=2), T_bc_wrong)
+    cue = RoadRegionCue(cam, RoadRegionConfig(enabled=True, pitch_window=6, pitch_every=2), T_bc_wrong)
     T = [make_T(rot_z(0.2), [0.3, -0.2, 0.0])]
     for _ in range(10):
         T.append(T[-1] @ make_T(rot_z(0.02), [0.25, 0.01, 0.0]))
     # The estimate's base poses carry the true cameras through the wrong mount (as vision's camera poses would).
     est = [Tk @ cam.T_base_cam @ np.linalg.inv(T_bc_wrong) for Tk in T]
-    searches, errors, pitches = [], [], []
+    searches, pooled, errors, pitches = [], [], [], []
     for k, Tk in enumerate(T):
         cue.keep_image(k, _render(cam, Tk, tex))
         if k == 0:
             continue
         step = cue.measure(k, est[k - 1], est[k], np.array([0.0, 0.0, 1.0]), 0.0)
         assert step is not None
-        searches.append(len(cue.pitches))
+        searches.append(cue.n_searches)
+        pooled.append(len(cue.pitches))
         errors.append(step.camera_m / _camera_distance(cam, T[k - 1], T[k]) - 1.0)
         pitches.append(step.pitch_deg)
-    assert searches == [1, 1, 2, 2, 3, 3, 4, 4, 5, 5]
-    assert all(p == 0.0 for p in pitches[:8]) and all(abs(e) > 0.03 for e in errors[:8]), (pitches, errors)
-    assert all(abs(abs(p) - 1.0) < 0.3 for p in pitches[8:]) and all(abs(e) < 0.01 for e in errors[8:]), (
+    assert searches == [1, 2, 3, 4, 5, 6, 6, 7, 7, 8]
+    assert pooled == [1, 2, 3, 4, 5, 6, 6, 6, 6, 6]
+    assert all(p == 0.0 for p in pitches[:4]) and all(abs(e) > 0.03 for e in errors[:4]), (pitches, errors)
+    assert all(abs(abs(p) - 1.0) < 0.3 for p in pitches[4:]) and all(abs(e) < 0.01 for e in errors[4:]), (
         pitches, errors)
 
 

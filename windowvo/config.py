@@ -281,9 +281,11 @@ class RoadRegionConfig(_Section):
     pitch_sigmas: float = Field(3.0, ge=0, description="with pitch_window above 1, the pooled pitch (the median) is "
                                 "used once it lies this many standard errors (from the searches' spread) from the "
                                 "assumed one, with 5 searches at least; until then the assumed pitch")
-    pitch_every: int = Field(1, ge=1, description="with pitch_window above 1, the pitch is searched at every this many "
-                             "steps only (the search costs about four times the length's alone); the steps between are "
-                             "measured on the pooled pitch")
+    pitch_every: int = Field(1, ge=1, description="with pitch_window above 1, once pitch_window searches are pooled the "
+                             "pitch is searched at every this many steps only (the search costs about four times the "
+                             "length's alone; until the pool is full, at every step); the steps between are measured "
+                             "on the pooled pitch. 3 was measured: 2.3x less cost, but the KITTI excerpts' fused runs "
+                             "1.54x worse (docs/scale_suite.md)")
     sigma_fraction: float = Field(0.03, gt=0, description="sigma of a measured step's length, as a share of it")
     max_floor_landmarks: int | None = Field(
         50, ge=1, description="measure a step only while the window holds fewer than this many floor landmarks "

@@ -166,6 +166,14 @@ class _Warp:
         f = self.h / np.where(d > 1e-9, d, 1e-9)  # each ray's point on that floor is f times its point on the assumed
         return (self.RX0 * f[:, None]).astype(np.float32), np.outer(d * f, t_dir).astype(np.float32)
 
+    def on_planes(self, ns: np.ndarray, t_dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``on_plane`` for K floors' normals ``ns`` (K, 3) and directions ``t_dirs`` (K, 3) at once: (K, N, 3) each."""
+        d = self.X0 @ ns.T  # (N, K)
+        f = self.h / np.where(d > 1e-9, d, 1e-9)
+        RX = (self.RX0[None] * f.T[:, :, None]).astype(np.float32)
+        tn = ((d * f).T[:, :, None] * t_dirs[:, None, :]).astype(np.float32)
+        return RX, tn
+
     def pixels(self, s: float) -> tuple[np.ndarray, np.ndarray]:
         return self._project(self.RX + np.float32(s) * self.tn)  # R X + s t_dir (n . X), and n . X = h: R X + t
 
@@ -391,16 +399,17 @@ def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, c
 
     def directions(span: float, steps: int) -> None:
         xs = p[1] + np.linspace(-span, span, steps)
-        pick(xs, np.asarray(warp.correlations_of(np.stack([points(np.array([p[0], x, p[2]])) for x in xs]))), 1)
+        n = rot_x(float(p[2])) @ warp.n_cam
+        RX, tn = warp.on_planes(np.tile(n, (steps, 1)), np.stack([rot_y(float(x)) @ t_dir for x in xs]))
+        pick(xs, np.asarray(warp.correlations_of(RX + np.float32(np.exp(p[0])) * tn)), 1)
 
     def lengths_and_pitches(span_s: float, span_t: float, steps: int) -> tuple[float, bool, bool]:
         ls = p[0] + np.linspace(-span_s, span_s, steps)
         ts = p[2] + np.linspace(-span_t, span_t, steps)
-        Xk = []
-        for t in ts:
-            RX, tn = plane(np.array([p[0], p[1], t]))
-            Xk.append(RX[None] + np.exp(ls).astype(np.float32)[:, None, None] * tn[None])
-        c = np.asarray(warp.correlations_of(np.concatenate(Xk))).reshape(steps, steps)  # [pitch, length]
+        d = rot_y(float(p[1])) @ t_dir
+        RX, tn = warp.on_planes(np.stack([rot_x(float(t)) @ warp.n_cam for t in ts]), np.tile(d, (steps, 1)))
+        Xk = RX[:, None] + np.exp(ls).astype(np.float32)[None, :, None, None] * tn[:, None]  # (pitch, length, N, 3)
+        c = np.asarray(warp.correlations_of(Xk.reshape(steps * steps, *Xk.shape[2:]))).reshape(steps, steps)
         it, il = (int(i) for i in np.unravel_index(int(np.argmax(c)), c.shape))
         p[0] = _parabola_peak(ls, c[it], il)
         p[2] = _parabola_peak(ts, c[:, il], it)
@@ -475,9 +484,10 @@ class RoadRegionCue:
         self._image: tuple[int, np.ndarray, np.ndarray | None] | None = None
         self._previous: tuple[int, np.ndarray, np.ndarray | None] | None = None
         self.pending: RoadStep | None = None  # measured, its factor not yet in the smoother
-        # The floor's pitch the searches of the last pitch_window steps found (one every pitch_every steps), against
-        # the assumed normal they were searched from
-        self.pitches: deque[float] = deque(maxlen=max(1, -(-cfg.pitch_window // cfg.pitch_every)))
+        # The floor's pitch the last pitch_window searches found (at every step until there are that many, then at
+        # every pitch_every-th), against the assumed normal they were searched from
+        self.pitches: deque[float] = deque(maxlen=max(1, cfg.pitch_window))
+        self.n_searches = 0  # pitch searches made (for the record and the tests)
         self._pitch_from: np.ndarray | None = None
         self._steps_since_search = 0
         self._pitch_search = cfg.model_copy(update={"far_heights": cfg.pitch_far_heights})  # the pitch's region
@@ -509,8 +519,10 @@ class RoadRegionCue:
     def _fit(self, img0: np.ndarray, img1: np.ndarray, T_wc0: np.ndarray, T_wc1: np.ndarray, n_cam: np.ndarray,
              h: float, masks: tuple[np.ndarray | None, np.ndarray | None]) -> StepFit | None:
         """The step's fit: its own (``pitch_window`` 1, or the pitch not searched), or its length searched again on
-        the pitch pooled over the last ``pitch_window`` steps (the median of the pitches searched at every
-        ``pitch_every``-th step; a change of the assumed normal, the floor's attitude learnt, starts the pool over)."""
+        the pitch pooled over the last ``pitch_window`` searches (their median; searched at every step until the pool
+        is full, then at every ``pitch_every``-th: one more search then moves the median little, and the search is
+        four fifths of a step's cost; a change of the assumed normal, the floor's attitude learnt, starts the pool
+        over)."""
         c = self.cfg
         if c.pitch_search_deg <= 0:
             return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, c, self.grid, masks, self._rays)
@@ -519,8 +531,9 @@ class RoadRegionCue:
         if self._pitch_from is None or float(n_cam @ self._pitch_from) < math.cos(1e-3):
             self.pitches.clear()
             self._pitch_from = n_cam
-        if not self.pitches or self._steps_since_search >= c.pitch_every - 1:
+        if len(self.pitches) < max(1, c.pitch_window) or self._steps_since_search >= c.pitch_every - 1:
             self._steps_since_search = 0
+            self.n_searches += 1
             fit = measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks, self._rays)
             if fit is not None:
                 self.pitches.append(fit.pitch_deg)
