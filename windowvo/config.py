@@ -247,7 +247,7 @@ class RoadRegionConfig(_Section):
                           "the two keyframes' images through the floor's homography (the estimate's rotation and "
                           "direction, the camera height, the floor's pitch searched), tied as a range factor between "
                           "their poses, where the window ties fewer than max_floor_landmarks floor points; for floors "
-                          "with few corners (a road, a plain warehouse floor). Costs about 20 ms of back end a "
+                          "with few corners (a road, a plain warehouse floor). Costs about 35 ms of back end a "
                           "keyframe at 1226x370 (docs/scale_suite.md, The floor's region as the default)")
     near_heights: float = Field(2.0, gt=0, description="the region's near edge ahead of the camera, in camera heights")
     far_heights: float = Field(6.0, gt=0, description="its far edge, in camera heights")
