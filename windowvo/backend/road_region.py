@@ -375,16 +375,12 @@ def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, c
                        ) -> StepFit | None:
     """``measure_step``'s search with the floor's pitch: a coarse grid of the length on the assumed floor, then rounds
     of the direction's sideways angle (a line) and of the length and the pitch together (a grid: they trade along a
-    ridge, on which alternating lines would crawl), each on a third of the last span (the pitch's only once its peak
-    lies inside its grid). As on the assumed floor, the length's peak must lie inside its last grid."""
+    ridge), each on a third of the last span (the pitch's once its peak lies inside its grid); the length's peak must
+    lie inside its last grid, as on the assumed floor."""
     p = np.array([np.log(s_est), 0.0, 0.0])  # log s, the direction's sideways turn, the floor's pitch (rad)
 
     def plane(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return warp.on_plane(rot_x(float(q[2])) @ warp.n_cam, rot_y(float(q[1])) @ t_dir)
-
-    def points(q: np.ndarray) -> np.ndarray:
-        RX, tn = plane(q)
-        return RX + np.float32(np.exp(q[0])) * tn
 
     def pick(xs: np.ndarray, c: np.ndarray, axis: int) -> tuple[float, bool]:
         i = int(np.argmax(c))
@@ -428,7 +424,8 @@ def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, c
         span_s /= 3.0
         if pitch_inside:  # a pitch at the grid's edge keeps its span: the next grid, centred there, goes on
             span_t /= 3.0
-    c_best = warp.correlations_of(points(p)[None])[0]
+    RX, tn = plane(p)
+    c_best = warp.correlations_of((RX + np.float32(np.exp(p[0])) * tn)[None])[0]
     if not inside or c_best < cfg.min_correlation:
         return None
     return StepFit(float(np.exp(p[0])) * h, c_best, warp.n_last, float(np.degrees(p[2])))
