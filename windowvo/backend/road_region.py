@@ -162,14 +162,13 @@ class _Warp:
     def on_plane(self, n: np.ndarray, t_dir: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(R X, t_dir (n . X))`` (N, 3) each for the region's rays met on the floor ``n . X = h`` instead of the
         assumed one: the points of camera k at length s are the first plus s times the second."""
-        d = self.X0 @ n
-        f = self.h / np.where(d > 1e-9, d, 1e-9)  # each ray's point on that floor is f times its point on the assumed
-        return (self.RX0 * f[:, None]).astype(np.float32), np.outer(d * f, t_dir).astype(np.float32)
+        RX, tn = self.on_planes(n[None], t_dir[None])
+        return RX[0], tn[0]
 
     def on_planes(self, ns: np.ndarray, t_dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``on_plane`` for K floors' normals ``ns`` (K, 3) and directions ``t_dirs`` (K, 3) at once: (K, N, 3) each."""
         d = self.X0 @ ns.T  # (N, K)
-        f = self.h / np.where(d > 1e-9, d, 1e-9)
+        f = self.h / np.where(d > 1e-9, d, 1e-9)  # each ray's point on that floor is f times its point on the assumed
         RX = (self.RX0[None] * f.T[:, :, None]).astype(np.float32)
         tn = ((d * f).T[:, :, None] * t_dirs[:, None, :]).astype(np.float32)
         return RX, tn
@@ -215,9 +214,10 @@ class _Warp:
     def correlations_of(self, Xk: np.ndarray) -> list[float]:
         """The correlation of each of S candidate warps, given as the region's points in camera k (S, N, 3).
 
-        All S at once: every point is sampled (those outside image k, behind it or on its mask at the image's
-        corner, with no weight), and each candidate's zero-mean normalised cross-correlation is taken over its own
-        points by weighted sums (float64), so no candidate's points are gathered one by one."""
+        All S at once: every point is sampled (one outside image k or behind it at the image's corner), those
+        outside, behind or on image k's mask with no weight, and each candidate's zero-mean normalised
+        cross-correlation is taken over its own points by weighted sums (float64), so no candidate's points are
+        gathered one by one."""
         u, v, front = self._project_uv(Xk)  # (S, N) each
         u0, u1, v0, v1 = self.bounds
         inside = front & (u >= u0) & (u <= u1) & (v >= v0) & (v <= v1)
