@@ -13,11 +13,14 @@ import pytest
 
 from windowvo.backend.road_region import (
     RoadRegionCue,
+    _Warp,
     base_distance,
     floor_in_camera,
     measure_step,
+    pixel_grid,
     pooled_pitch,
     range_factor,
+    region_rays,
     smoothed,
 )
 from windowvo.camera import CameraModel
@@ -149,6 +152,52 @@ def test_a_floor_pitched_against_the_set_up_is_searched_out(pitch_deg):
     assert abs(assumed.camera_m / d - 1.0) > 0.03, assumed
     assert abs(searched.camera_m / d - 1.0) < 0.01, searched
     assert abs(abs(searched.pitch_deg) - 1.0) < 0.3, searched
+
+
+def _reference_correlation(cam: CameraModel, img0, img1, uv0, Xk: np.ndarray, mask1) -> float:
+    """Zero-mean normalised cross-correlation of the region's pixels in image k-1 with image k sampled (bilinear) at
+    the points ``Xk`` (N, 3, camera k), over the points in front of camera k, inside its image and off its mask: the
+    plain formula, one candidate at a time."""
+    front = Xk[:, 2] > 1e-6
+    uv = np.full((len(Xk), 2), -1.0)
+    uv[front] = cam.project(Xk[front])
+    ok = front & (uv[:, 0] >= 1) & (uv[:, 0] <= cam.width - 2) & (uv[:, 1] >= 1) & (uv[:, 1] <= cam.height - 2)
+    ok[ok] &= mask1[(uv[ok, 1] + 0.5).astype(int), (uv[ok, 0] + 0.5).astype(int)] != 0
+    m = uv[ok].astype(np.float32)[None]
+    b = cv2.remap(img1, m[..., 0], m[..., 1], cv2.INTER_LINEAR).ravel().astype(float)
+    a = img0[uv0[ok, 1], uv0[ok, 0]].astype(float)
+    a, b = a - a.mean(), b - b.mean()
+    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+
+@pytest.mark.parametrize("distorted", [False, True])
+def test_every_candidate_of_a_grid_of_floors_and_lengths_correlates_as_the_plain_formula_says(distorted):
+    """The search scores its candidates all at once (``_Warp.correlations_at``: P floors x L lengths, by weighted
+    sums, each coordinate built on its own); each must be the plain correlation of its own warp, also where part of
+    the region leaves image k (the longest step) or lands on its mask, and through a distorted lens."""
+    cam = _camera()
+    if distorted:
+        cam = CameraModel(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, DistortionModel.RADTAN,
+                          (-0.2, 0.05, 0.0, 0.0), cam.T_base_cam)
+    tex = _texture(3, lane_lines=True)
+    T0, T1 = _step()
+    img0, img1 = smoothed(_render(cam, T0, tex)), smoothed(_render(cam, T1, tex))
+    mask1 = np.full((cam.height, cam.width), 255, np.uint8)
+    mask1[200:, 100:180] = 0  # a bonnet in image k
+    T_c1_c0 = np.linalg.inv(T1 @ cam.T_base_cam) @ (T0 @ cam.T_base_cam)
+    t = T_c1_c0[:3, 3]
+    n_cam, h = floor_in_camera(cam.T_base_cam, np.array([0.0, 0.0, 1.0]), 0.0)
+    cfg = RoadRegionConfig(enabled=True)
+    uv0, X0 = region_rays(pixel_grid(cam, cfg.step_px), n_cam, h, cfg)
+    warp = _Warp(cam, img0, img1, uv0, X0, T_c1_c0[:3, :3], t / np.linalg.norm(t), n_cam, h, 20, mask1)
+    ns = np.stack([rot_x(np.radians(a)) @ n_cam for a in (-1.5, 0.0, 2.0)])
+    RX, tn = warp.on_planes(ns, np.tile(t / np.linalg.norm(t), (3, 1)))
+    ss = np.linalg.norm(t) / h * np.array([0.7, 1.0, 1.3, 6.0])
+    got = np.reshape(warp.correlations_at(RX, tn, ss), (3, 4))
+    want = np.array([[_reference_correlation(cam, img0, img1, uv0, RX[p].astype(float) + s * tn[p].astype(float),
+                                             mask1) for s in ss] for p in range(3)])
+    assert got == pytest.approx(want, abs=1e-4)
+    assert got[1, 1] > 0.9 and got[1, 1] == got.max()  # the true floor and length correlate best
 
 
 def test_the_pooled_pitch_is_the_searches_median_once_it_stands_out_of_their_spread():

@@ -189,17 +189,17 @@ class _Warp:
         uv[front] = self.camera.project(Xk[front].astype(np.float64))
         return uv, front
 
-    def _project_uv(self, Xk: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``_project`` as the pixels' columns and rows (S, N) float32 each, and which lie in front."""
+    def _project_xyz(self, X: np.ndarray, Y: np.ndarray, Z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The pixels' columns and rows (S, N) float32 each of the points given by their coordinates (S, N) each in
+        camera k, and which lie in front (``_project``, without the points' (S, N, 3) array for a pinhole camera)."""
         if not self.pinhole:
-            uv, front = self._project(Xk)
+            uv, front = self._project(np.stack([X, Y, Z], axis=-1))
             return np.ascontiguousarray(uv[..., 0]), np.ascontiguousarray(uv[..., 1]), front
         c = self.camera
-        z = Xk[..., 2]
-        front = z > 1e-6
-        z = np.where(front, z, np.float32(1.0))
-        u = (np.float32(c.fx) * Xk[..., 0] / z + np.float32(c.cx)).astype(np.float32)
-        v = (np.float32(c.fy) * Xk[..., 1] / z + np.float32(c.cy)).astype(np.float32)
+        front = Z > 1e-6
+        z = np.where(front, Z, np.float32(1.0))
+        u = (np.float32(c.fx) * X / z + np.float32(c.cx)).astype(np.float32)
+        v = (np.float32(c.fy) * Y / z + np.float32(c.cy)).astype(np.float32)
         return u, v, front
 
     def correlation(self, s: float) -> tuple[float, int]:
@@ -209,20 +209,32 @@ class _Warp:
         """``correlation`` of the lengths ``ss`` (S,), each with its direction's ``t_dir (n . X)`` (``tns``: (S, N, 3)
         or (1, N, 3) for one direction), in one pass: the same numbers as one call per length, with the numpy and
         OpenCV work done once for all S (``n_last``: the last one's pixels)."""
-        return self.correlations_of(self.RX[None] + ss.astype(np.float32)[:, None, None] * tns)
+        s = ss.astype(np.float32)[:, None]
+        return self._correlate(*self._project_xyz(*(self.RX[None, :, i] + s * tns[:, :, i] for i in range(3))))
 
-    def correlations_of(self, Xk: np.ndarray) -> list[float]:
-        """The correlation of each of S candidate warps, given as the region's points in camera k (S, N, 3).
+    def correlations_at(self, RX: np.ndarray, tn: np.ndarray, ss) -> list[float]:
+        """The correlation of the candidate warps whose points in camera k are ``RX[p] + ss[l] tn[p]``, for each of P
+        floors (``on_planes``: (P, N, 3) each) and L lengths ``ss``: P x L candidates in that order (the floor's index
+        the slower). Each coordinate is built on its own: the same float32 numbers as the points built whole, without
+        their (P L, N, 3) array."""
+        s = np.asarray(ss, np.float32)[None, :, None]
+        n = RX.shape[1]
+        X, Y, Z = ((RX[:, None, :, i] + s * tn[:, None, :, i]).reshape(-1, n) for i in range(3))
+        return self._correlate(*self._project_xyz(X, Y, Z))
+
+    def _correlate(self, u: np.ndarray, v: np.ndarray, front: np.ndarray) -> list[float]:
+        """The correlation of each of S candidate warps, given as the pixels (S, N) of the region's points in image k
+        and which lie in front of camera k.
 
         All S at once: every point is sampled (one outside image k or behind it at the image's corner), those
         outside, behind or on image k's mask with no weight, and each candidate's zero-mean normalised
         cross-correlation is taken over its own points by weighted sums (float64), so no candidate's points are
         gathered one by one."""
-        u, v, front = self._project_uv(Xk)  # (S, N) each
         u0, u1, v0, v1 = self.bounds
         inside = front & (u >= u0) & (u <= u1) & (v >= v0) & (v <= v1)
         outside = ~inside
-        u[outside], v[outside] = u0, v0  # sampled, weighed 0
+        np.copyto(u, np.float32(u0), where=outside)  # sampled, weighed 0
+        np.copyto(v, np.float32(v0), where=outside)
         if self.mask1 is not None:  # samples landing on masked pixels of image k are no floor
             inside &= self.mask1[(v + 0.5).astype(int), (u + 0.5).astype(int)] != 0
         counts = inside.sum(axis=1)
@@ -390,22 +402,20 @@ def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, c
     def lengths(span: float, steps: int) -> tuple[float, bool]:
         xs = p[0] + np.linspace(-span, span, steps)
         RX, tn = plane(p)
-        return pick(xs, np.asarray(warp.correlations_of(RX[None] + np.exp(xs).astype(np.float32)[:, None, None]
-                                                         * tn[None])), 0)
+        return pick(xs, np.asarray(warp.correlations_at(RX[None], tn[None], np.exp(xs))), 0)
 
     def directions(span: float, steps: int) -> None:
         xs = p[1] + np.linspace(-span, span, steps)
         n = rot_x(float(p[2])) @ warp.n_cam
         RX, tn = warp.on_planes(np.tile(n, (steps, 1)), np.stack([rot_y(float(x)) @ t_dir for x in xs]))
-        pick(xs, np.asarray(warp.correlations_of(RX + np.float32(np.exp(p[0])) * tn)), 1)
+        pick(xs, np.asarray(warp.correlations_at(RX, tn, [np.exp(p[0])])), 1)
 
     def lengths_and_pitches(span_s: float, span_t: float, steps: int) -> tuple[float, bool, bool]:
         ls = p[0] + np.linspace(-span_s, span_s, steps)
         ts = p[2] + np.linspace(-span_t, span_t, steps)
         d = rot_y(float(p[1])) @ t_dir
         RX, tn = warp.on_planes(np.stack([rot_x(float(t)) @ warp.n_cam for t in ts]), np.tile(d, (steps, 1)))
-        Xk = RX[:, None] + np.exp(ls).astype(np.float32)[None, :, None, None] * tn[:, None]  # (pitch, length, N, 3)
-        c = np.asarray(warp.correlations_of(Xk.reshape(steps * steps, *Xk.shape[2:]))).reshape(steps, steps)
+        c = np.asarray(warp.correlations_at(RX, tn, np.exp(ls))).reshape(steps, steps)  # (pitch, length)
         it, il = (int(i) for i in np.unravel_index(int(np.argmax(c)), c.shape))
         p[0] = _parabola_peak(ls, c[it], il)
         p[2] = _parabola_peak(ts, c[:, il], it)
@@ -425,7 +435,7 @@ def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, c
         if pitch_inside:  # a pitch at the grid's edge keeps its span: the next grid, centred there, goes on
             span_t /= 3.0
     RX, tn = plane(p)
-    c_best = warp.correlations_of((RX + np.float32(np.exp(p[0])) * tn)[None])[0]
+    c_best = warp.correlations_at(RX[None], tn[None], [np.exp(p[0])])[0]
     if not inside or c_best < cfg.min_correlation:
         return None
     return StepFit(float(np.exp(p[0])) * h, c_best, warp.n_last, float(np.degrees(p[2])))
