@@ -290,6 +290,52 @@ def test_the_cue_measures_consecutive_keyframes_only():
     assert step.camera_m == pytest.approx(_camera_distance(cam, T0, T1), rel=0.01)
 
 
+def _rocked(T: np.ndarray, roll_deg: float, pitch_deg: float) -> np.ndarray:
+    """The base pose ``T`` rocked on its suspension (about its own x and y axes, its origin kept)."""
+    out = T.copy()
+    out[:3, :3] = T[:3, :3] @ rot_y(np.radians(pitch_deg)) @ rot_x(np.radians(roll_deg))
+    return out
+
+
+def test_on_a_rocking_base_the_step_is_measured_on_the_windows_level_floor():
+    """A base rocking by about a degree between keyframes (the window's poses know each keyframe's attitude; the
+    floor is level): measured along the set-up's normal (the base's z axis, which rocks with it) the step comes out
+    off by several per cent; along the window's mean normal seen from keyframe k-1 (``RoadRegion.level_floor``,
+    the default) within 1%. A level window keeps the set-up's normal (None), and so does the key off."""
+    import types
+
+    from windowvo.backend.road_region import RoadRegion
+
+    cam, tex = _camera(), _texture(7, lane_lines=False)
+    T0, T1 = _step()
+    rock = [(0.6, -0.9), (-0.7, 0.8), (0.5, 1.1), (-0.4, -1.0), (0.8, 0.7), (-0.6, -0.8)]  # (roll, pitch) deg
+    level = [make_T(rot_z(0.05 * i), [0.25 * i, 0.0, 0.0]) for i in range(len(rock))]
+    k = len(rock) - 1
+    level[k - 1], level[k] = T0, T1
+    poses = {i: _rocked(T, *rock[i]) for i, T in enumerate(level)}
+    region = RoadRegion(cam, BackendConfig(), types.SimpleNamespace(use_ground=True), poses)
+    n_base = region.level_floor(k, 0, np.array([0.0, 0.0, 1.0]))
+    assert n_base is not None
+    # the world's up seen from keyframe k-1 (the rocks' mean is within 0.2 deg of level)
+    assert np.degrees(np.arccos(n_base @ (poses[k - 1][:3, :3].T @ [0.0, 0.0, 1.0]))) < 0.3
+    img0, img1 = smoothed(_render(cam, poses[k - 1], tex)), smoothed(_render(cam, poses[k], tex))
+    d = _camera_distance(cam, poses[k - 1], poses[k])
+    cfg = RoadRegionConfig(enabled=True, pitch_search_deg=0.0)  # the assumed floor alone: what the normal does
+    args = (cam, img0, img1, poses[k - 1] @ cam.T_base_cam, poses[k] @ cam.T_base_cam)
+    set_up = measure_step(*args, *floor_in_camera(cam.T_base_cam, np.array([0.0, 0.0, 1.0]), 0.0), cfg)
+    levelled = measure_step(*args, *floor_in_camera(cam.T_base_cam, n_base, float(n_base @ cam.T_base_cam[:3, 3])
+                                                     - HEIGHT), cfg)
+    assert set_up is not None and levelled is not None
+    assert abs(set_up.camera_m / d - 1.0) > 0.03, set_up
+    assert abs(levelled.camera_m / d - 1.0) < 0.01, levelled
+    flat = {i: T for i, T in enumerate(level)}
+    assert RoadRegion(cam, BackendConfig(), types.SimpleNamespace(use_ground=True), flat).level_floor(
+        k, 0, np.array([0.0, 0.0, 1.0])) is None
+    off = BackendConfig.model_validate({"ground": {"road_region": {"level_when_rocking": False}}})
+    assert RoadRegion(cam, off, types.SimpleNamespace(use_ground=True), poses).level_floor(
+        k, 0, np.array([0.0, 0.0, 1.0])) is None
+
+
 def test_the_region_must_reach_beyond_its_near_edge():
     assert BackendConfig().ground.road_region.enabled is True  # on by default
     with pytest.raises(ConfigError, match="far_heights"):

@@ -253,6 +253,8 @@ class RoadRegionConfig(_Section):
     far_heights: float = Field(6.0, gt=0, description="its far edge, in camera heights")
     half_width_heights: float = Field(1.0, gt=0, description="its half width beside the optical axis, in camera "
                                       "heights")
+    blur_px: float = Field(1.0, ge=0, le=5, description="sigma (pixels) of the Gaussian the two images are smoothed "
+                           "by before the region is sampled (0: none)")
     step_px: int = Field(2, ge=1, le=16, description="the region's pixels are sampled every this many pixels")
     max_pixels: int = Field(2000, ge=100, description="at most this many sampled pixels (an even subsample; the "
                             "search's time is mostly per pixel: 6000 take about twice 2000's)")
@@ -291,6 +293,11 @@ class RoadRegionConfig(_Section):
         50, ge=1, description="measure a step only while the window holds fewer than this many floor landmarks "
         "tied to the floor (the corners then tell the floor's scale already, and the region's pixels are the same "
         "floor's: a room's textured floor; a road's fused run ties none). null: every step")
+    level_when_rocking: bool = Field(False, description="on a base rocking on its suspension (the window's keyframes "
+                                     "tilting by more than ground.rocking_jitter_deg between keyframes), measure each "
+                                     "step on the floor along the window's mean floor normal, seen from the step's "
+                                     "first keyframe (its rocking applied) instead of the set-up's; false: always the "
+                                     "set-up's (or the learnt mount's) normal")
     robust_k: float | None = Field(None, gt=0, description="threshold of the range factor's robust loss (the "
                                    "ground factors' kind) in sigmas; default: the 1-D chi-square quantile of "
                                    "backend.robust_confidence")

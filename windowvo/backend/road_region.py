@@ -21,9 +21,10 @@ floor's pitch about the camera's x axis too (``pitch_search_deg`` either side of
 the length on one grid: the two trade along a ridge (a longer step on a floor pitched further down), which only the
 change of the floor's image motion from the region's near rows to its far ones separates, hence a region reaching
 ``pitch_far_heights`` (10) camera heights ahead. The assumed normal is the floor's learnt one (``FloorAttitude``: a mount
-pitched against ``T_base_cam``) when known, else the set-up's (the base's z axis: a rocking base's tilt between
-keyframes is not applied). A step's sigma is ``sigma_fraction`` of its length. Masked pixels (``frontend`` masks: a
-bonnet, the robot's own body) are left out of the region in both images.
+pitched against ``T_base_cam``) when known, else the set-up's (the base's z axis); on a base rocking on its suspension,
+the window's mean of it seen from the step's first keyframe (``RoadRegion.level_floor``: the keyframe's rocking
+applied; the pitches are still pooled against the mount's normal). A step's sigma is ``sigma_fraction`` of its
+length. Masked pixels (``frontend`` masks: a bonnet, the robot's own body) are left out of the region in both images.
 
 The measurement (``measure_step``, ``RoadRegionCue``: which images, which step) is numpy and OpenCV, tested on its own
 (``tests/test_road_region.py``); ``RoadRegion`` is the smoother's side (when to measure, when its range factor may go
@@ -42,6 +43,8 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import BackendConfig, RoadRegionConfig
 from ..geometry import rot_x, rot_y
+from .floor import MIN_ROCKING_KEYFRAMES
+from .ground import attitude_jitter_deg, level_up
 
 # The search (``_search``): a coarse grid of COARSE_STEPS lengths over +-COARSE_SPAN (log) around the estimate's step,
 # a parabola through the best one and its neighbours, then REFINE_ROUNDS rounds of the direction's sideways angle
@@ -58,7 +61,7 @@ REFINE_ROUNDS = 3  # rounds of the alternating search (direction, length), each 
 PITCH_LENGTH_SPAN = 12.0
 REMAP_COLS = 16384  # cv2.remap's map is folded into rows of this many points (it takes fewer than SHRT_MAX columns)
 MEMO_REGIONS = 8  # floor rays a cue keeps (one set per assumed floor)
-BLUR_SIGMA_PX = 1.0  # the images are smoothed before sampling (the warp's linear interpolation then behaves)
+BLUR_SIGMA_PX = 1.0  # the images' smoothing before sampling by default (``road_region.blur_px``)
 
 
 @dataclass(frozen=True)
@@ -130,9 +133,10 @@ def region_rays(grid: tuple[np.ndarray, np.ndarray], n_cam: np.ndarray, h: float
     return uv, X
 
 
-def smoothed(image: np.ndarray) -> np.ndarray:
-    """The float image the measurement samples."""
-    return cv2.GaussianBlur(image.astype(np.float32), (0, 0), BLUR_SIGMA_PX)
+def smoothed(image: np.ndarray, sigma_px: float = BLUR_SIGMA_PX) -> np.ndarray:
+    """The float image the measurement samples: smoothed by a Gaussian of ``sigma_px`` (0: as it is)."""
+    img = image.astype(np.float32)
+    return cv2.GaussianBlur(img, (0, 0), sigma_px) if sigma_px > 0 else img
 
 
 class _Warp:
@@ -504,18 +508,22 @@ class RoadRegionCue:
         """Keyframe k's image (grey, as measured) and its usable pixels (0: masked; None: all); no image: the step
         to it is not measured."""
         self._previous = self._image
-        self._image = None if image is None else (k, smoothed(image), mask)
+        self._image = None if image is None else (k, smoothed(image, self.cfg.blur_px), mask)
 
     def measure(self, k: int, T_world_base0: np.ndarray, T_world_base1: np.ndarray, n_base: np.ndarray,
-                floor_offset: float) -> RoadStep | None:
+                floor_offset: float, pool_normal: np.ndarray | None = None) -> RoadStep | None:
         """The step k-1 -> k from the floor region, at the estimate's poses (after keyframe k's update); kept as
-        ``pending`` for the next update. ``n_base``, ``floor_offset``: the floor in keyframe k-1's base frame."""
+        ``pending`` for the next update. ``n_base``, ``floor_offset``: the floor in keyframe k-1's base frame.
+        ``pool_normal``: the floor's normal in the base frame the pitches are pooled against (default ``n_base``;
+        a rocking base's levelled floor moves ``n_base`` at every step, not the pitch the searches find)."""
         self.pending = None
         if self._image is None or self._previous is None or self._image[0] != k or self._previous[0] != k - 1:
             return None
         T_wc0, T_wc1 = T_world_base0 @ self.T_base_cam, T_world_base1 @ self.T_base_cam
         n_cam, h = floor_in_camera(self.T_base_cam, n_base, floor_offset)
-        fit = self._fit(self._previous[1], self._image[1], T_wc0, T_wc1, n_cam, h, (self._previous[2], self._image[2]))
+        pool = n_cam if pool_normal is None else floor_in_camera(self.T_base_cam, pool_normal, 0.0)[0]
+        fit = self._fit(self._previous[1], self._image[1], T_wc0, T_wc1, n_cam, h, (self._previous[2], self._image[2]),
+                        pool)
         if fit is None:
             return None
         step = RoadStep(k, fit.camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, fit.camera_m),
@@ -524,20 +532,20 @@ class RoadRegionCue:
         return step
 
     def _fit(self, img0: np.ndarray, img1: np.ndarray, T_wc0: np.ndarray, T_wc1: np.ndarray, n_cam: np.ndarray,
-             h: float, masks: tuple[np.ndarray | None, np.ndarray | None]) -> StepFit | None:
+             h: float, masks: tuple[np.ndarray | None, np.ndarray | None], pool: np.ndarray) -> StepFit | None:
         """The step's fit: its own (``pitch_window`` 1, or the pitch not searched), or its length searched again on
         the pitch pooled over the last ``pitch_window`` searches (their median; searched at every step until the pool
         is full, then at every ``pitch_every``-th: one more search then moves the median little, and the search is
-        four fifths of a step's cost; a change of the assumed normal, the floor's attitude learnt, starts the pool
-        over)."""
+        four fifths of a step's cost; a change of the normal the pitches are pooled against, ``pool`` in the camera
+        frame, the floor's attitude learnt, starts the pool over)."""
         c = self.cfg
         if c.pitch_search_deg <= 0:
             return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, c, self.grid, masks, self._rays)
         if c.pitch_window <= 1:
             return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks, self._rays)
-        if self._pitch_from is None or float(n_cam @ self._pitch_from) < math.cos(1e-3):
+        if self._pitch_from is None or float(pool @ self._pitch_from) < math.cos(1e-3):
             self.pitches.clear()
-            self._pitch_from = n_cam
+            self._pitch_from = pool
         if len(self.pitches) < max(1, c.pitch_window) or self._steps_since_search >= c.pitch_every - 1:
             self._steps_since_search = 0
             self.n_searches += 1
@@ -575,14 +583,17 @@ class RoadRegion:
         self.ratio = float("nan")  # the last keyframe's measured step over the estimate's (nan: none)
         self.pitch_deg = float("nan")  # the floor's pitch against the assumed one it was measured on (nan: none)
         self.n_factors = 0  # range factors added to the smoother
+        self.levelled = False  # the last step was measured on the rocking base's level floor (``level_floor``)
 
     def after_update(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None,
-                     n_floor_tied: int = 0) -> float | None:
+                     n_floor_tied: int = 0, w0: int | None = None) -> float | None:
         """Keyframe k's step measured at the new estimate (its factor goes into the next update). Returns the camera
         height the measurement implies in the estimate's scale (the known height times the estimate's step over the
         measured one; None: not measured), the floor's measurement for the cue check. ``n_floor_tied``: the floor
-        landmarks the window ties to the floor (``road_region.max_floor_landmarks``)."""
+        landmarks the window ties to the floor (``road_region.max_floor_landmarks``); ``w0``: the window's first
+        keyframe (the keyframes a rocking base's level floor is taken over; default: keyframe k-1 alone)."""
         self.ratio = self.pitch_deg = float("nan")
+        self.levelled = False
         if self.cue is None:
             return None
         self.cue.keep_image(k, image, mask)
@@ -592,13 +603,40 @@ class RoadRegion:
             self.cue.pending = None
             return None
         n = self.floor.floor_normal_base()  # the set-up's base z, or the floor's learnt normal when the floor uses it
-        step = self.cue.measure(k, self.kf_pose[k - 1], self.kf_pose[k], np.array([0.0, 0.0, 1.0]) if n is None else n,
-                                self.floor.floor_offset(n))
+        n_mount = np.array([0.0, 0.0, 1.0]) if n is None else n
+        level = self.level_floor(k, k - 1 if w0 is None else w0, n_mount)
+        if level is not None:
+            self.levelled, n = True, level
+        step = self.cue.measure(k, self.kf_pose[k - 1], self.kf_pose[k], n_mount if n is None else n,
+                                self.floor.floor_offset(n), n_mount)
         if step is None or step.camera_m <= 0:
             return None
         self.ratio = step.camera_m / step.estimate_camera_m
         self.pitch_deg = step.pitch_deg
         return self.floor.camera_height_m / self.ratio
+
+    def level_floor(self, k: int, w0: int, n_mount: np.ndarray) -> np.ndarray | None:
+        """The floor's normal in keyframe k-1's base frame when the base rocks on its suspension, else None (the
+        floor's normal is ``n_mount`` in every keyframe's base frame).
+
+        The base rocks when the window's keyframes' floor normals (``n_mount`` turned into the world by each
+        keyframe's attitude) change by more than ``ground.rocking_jitter_deg`` between keyframes (their median: the
+        floor model's test, ``attitude_jitter_deg``). The floor then lies along their mean (``level_up``: rocking
+        is zero mean, and vision's keyframe rotations are good to a few hundredths of a degree while the tilt it
+        rocks by is a degree and more), seen from keyframe k-1's attitude: its rocking is applied. With the
+        set-up's normal instead, each degree of rocking is about 9% of a car's step measured by the region."""
+        g = self.cfg.ground
+        if not g.road_region.level_when_rocking or g.rocking_jitter_deg is None:
+            return None
+        Rs = [self.kf_pose[kk][:3, :3] for kk in range(w0, k + 1) if kk in self.kf_pose]
+        if len(Rs) < MIN_ROCKING_KEYFRAMES:
+            return None
+        normals = np.array([R @ n_mount for R in Rs])
+        if not attitude_jitter_deg(normals) > g.rocking_jitter_deg:
+            return None
+        mean = normals.mean(axis=0)
+        up = level_up(normals, mean / np.linalg.norm(mean), g.level_select_deg)
+        return self.kf_pose[k - 1][:3, :3].T @ up
 
     def add_factor(self, graph, w0: int) -> None:
         """The last measured step as a range factor between its two poses ``X(k-1)``, ``X(k)``, if both stay in the

@@ -344,7 +344,7 @@ class SlidingWindowBackend:
         self._refresh_states()
         lap(Stage.BACKEND_ESTIMATE)
         n_tied = self.lm.n_tied_to_floor(self.window_start()) if self.road.cue is not None else 0
-        road_height = self.road.after_update(k, fo.image, fo.image_mask, n_tied)
+        road_height = self.road.after_update(k, fo.image, fo.image_mask, n_tied, self.window_start())
         if k > 0 and self.slip.switched_now:
             self.floor.last_agreement = None  # a slipping step says nothing about the tyre's scale
         elif k > 0:
