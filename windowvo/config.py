@@ -255,10 +255,6 @@ class RoadRegionConfig(_Section):
                                       "heights")
     blur_px: float = Field(1.0, ge=0, le=5, description="sigma (pixels) of the Gaussian the two images are smoothed "
                            "by before the region is sampled (0: none)")
-    blur_match: bool = Field(True, description="smooth the newer image by blur_px times the floor's magnification "
-                             "between the two images (the region's median), so that both are smoothed alike on the "
-                             "floor; false: both by blur_px (the pitch a step finds is then biased: the newer image is "
-                             "sharper on the floor)")
     step_px: int = Field(2, ge=1, le=16, description="the region's pixels are sampled every this many pixels")
     max_pixels: int = Field(2000, ge=100, description="at most this many sampled pixels (an even subsample; the "
                             "search's time is mostly per pixel: 6000 take about twice 2000's)")

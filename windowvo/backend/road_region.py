@@ -298,12 +298,9 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
                  T_world_cam1: np.ndarray, n_cam: np.ndarray, h: float, cfg: RoadRegionConfig,
                  grid: tuple[np.ndarray, np.ndarray] | None = None,
                  masks: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
-                 memo: dict | None = None, img1_blur_px: float | None = None) -> StepFit | None:
+                 memo: dict | None = None) -> StepFit | None:
     """The camera step's metric length from the floor region (``img0``/``img1``: ``smoothed`` images of the two
     keyframes; the poses give the rotation and the direction; ``n_cam``, ``h``: the assumed floor in camera k-1).
-    ``img1_blur_px``: ``img1`` is keyframe k's image as it is, smoothed here by this sigma times the floor's
-    magnification from image k-1 to image k (``floor_magnification``), so that both images are smoothed alike on the
-    floor (``road_region.blur_match``).
 
     The estimate's direction is not exact, and a sideways error of it shifts the floor's pixels sideways by an
     amount that grows with the length: a road's lane lines make that costly, so a shorter step would win (10% on a
@@ -334,8 +331,6 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
         uv0, X0 = uv0[usable], X0[usable]
     if len(uv0) < cfg.min_pixels:
         return None
-    if img1_blur_px is not None:
-        img1 = smoothed(img1, img1_blur_px * floor_magnification(X0, R, t))
     t_dir = t / d_est
     warp = _Warp(camera, img0, img1, uv0, X0, R, t_dir, n_cam, h, cfg.min_pixels, masks[1])
     s_est = d_est / h
@@ -344,23 +339,6 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
     if cfg.pitch_search_deg > 0:
         return _search_with_pitch(warp, t_dir, s_est, h, cfg)
     return _search(warp, t_dir, s_est, h, cfg)
-
-
-def floor_magnification(X0: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
-    """How much larger the floor's region looks in image k than in image k-1 (the median over its points of their
-    depth in camera k-1 over their depth in camera k, ``X_k = R X + t``): on forward motion the near floor grows by
-    its depth over the remaining depth, 1.1-1.5 on a car's step.
-
-    A blur of sigma pixels in image k-1 covers sigma times this many pixels of the same floor in image k; smoothing
-    both images by the same pixels (``road_region.blur_match`` false) leaves image k sharper on the floor than image
-    k-1, most at the region's near rows, and the best warp then trades its length for the floor's pitch: measured on
-    ray-cast floors (a camera 1.65 m high, 613 x 185, a 1 m step, eight textures), the pitch a step finds is biased
-    by +0.10 to +0.33 deg and the length 0.8-2.9% short with 1 px in both images, +0.06 to +0.07 deg and 0.5-0.6%
-    with the blur matched."""
-    z0 = X0[:, 2]
-    z1 = (X0 @ R[2]) + t[2]
-    ok = (z0 > 0) & (z1 > 1e-6)
-    return float(np.median(z0[ok] / z1[ok])) if ok.any() else 1.0
 
 
 def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig) -> StepFit | None:
@@ -513,9 +491,9 @@ class RoadRegionCue:
         self.camera, self.cfg, self.T_base_cam = camera, cfg, T_base_cam
         self.grid = pixel_grid(camera, cfg.step_px)
         self._rays: dict = {}  # measure_step's memo of region rays (for self.grid)
-        # (keyframe, smoothed image, mask, image as given) of the newest keyframe, and of the one before it
-        self._image: tuple[int, np.ndarray, np.ndarray | None, np.ndarray] | None = None
-        self._previous: tuple[int, np.ndarray, np.ndarray | None, np.ndarray] | None = None
+        # (keyframe, smoothed image, mask) of the newest keyframe, and of the one before it
+        self._image: tuple[int, np.ndarray, np.ndarray | None] | None = None
+        self._previous: tuple[int, np.ndarray, np.ndarray | None] | None = None
         self.pending: RoadStep | None = None  # measured, its factor not yet in the smoother
         # The floor's pitch the last pitch_window searches found (at every step until there are that many, then at
         # every pitch_every-th), against the assumed normal they were searched from
@@ -530,7 +508,7 @@ class RoadRegionCue:
         """Keyframe k's image (grey, as measured) and its usable pixels (0: masked; None: all); no image: the step
         to it is not measured."""
         self._previous = self._image
-        self._image = None if image is None else (k, smoothed(image, self.cfg.blur_px), mask, image)
+        self._image = None if image is None else (k, smoothed(image, self.cfg.blur_px), mask)
 
     def measure(self, k: int, T_world_base0: np.ndarray, T_world_base1: np.ndarray, n_base: np.ndarray,
                 floor_offset: float, pool_normal: np.ndarray | None = None) -> RoadStep | None:
@@ -544,8 +522,8 @@ class RoadRegionCue:
         T_wc0, T_wc1 = T_world_base0 @ self.T_base_cam, T_world_base1 @ self.T_base_cam
         n_cam, h = floor_in_camera(self.T_base_cam, n_base, floor_offset)
         pool = n_cam if pool_normal is None else floor_in_camera(self.T_base_cam, pool_normal, 0.0)[0]
-        img1 = self._image[3] if self.cfg.blur_match else self._image[1]
-        fit = self._fit(self._previous[1], img1, T_wc0, T_wc1, n_cam, h, (self._previous[2], self._image[2]), pool)
+        fit = self._fit(self._previous[1], self._image[1], T_wc0, T_wc1, n_cam, h, (self._previous[2], self._image[2]),
+                        pool)
         if fit is None:
             return None
         step = RoadStep(k, fit.camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, fit.camera_m),
@@ -561,22 +539,17 @@ class RoadRegionCue:
         four fifths of a step's cost; a change of the normal the pitches are pooled against, ``pool`` in the camera
         frame, the floor's attitude learnt, starts the pool over)."""
         c = self.cfg
-        blur1 = c.blur_px if c.blur_match else None  # img1 as given, smoothed for the floor's magnification
-
-        def fit_on(n: np.ndarray, cfg: RoadRegionConfig) -> StepFit | None:
-            return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n, h, cfg, self.grid, masks, self._rays, blur1)
-
         if c.pitch_search_deg <= 0:
-            return fit_on(n_cam, c)
+            return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, c, self.grid, masks, self._rays)
         if c.pitch_window <= 1:
-            return fit_on(n_cam, self._pitch_search)
+            return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks, self._rays)
         if self._pitch_from is None or float(pool @ self._pitch_from) < math.cos(1e-3):
             self.pitches.clear()
             self._pitch_from = pool
         if len(self.pitches) < max(1, c.pitch_window) or self._steps_since_search >= c.pitch_every - 1:
             self._steps_since_search = 0
             self.n_searches += 1
-            fit = fit_on(n_cam, self._pitch_search)
+            fit = measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks, self._rays)
             if fit is not None:
                 self.pitches.append(fit.pitch_deg)
         else:
@@ -584,7 +557,8 @@ class RoadRegionCue:
         if not self.pitches:
             return None
         pooled = pooled_pitch(list(self.pitches), c.pitch_sigmas)
-        on = fit_on(rot_x(np.radians(pooled)) @ n_cam, self._on_pitch)
+        on = measure_step(self.camera, img0, img1, T_wc0, T_wc1, rot_x(np.radians(pooled)) @ n_cam, h,
+                          self._on_pitch, self.grid, masks, self._rays)
         return None if on is None else replace(on, pitch_deg=pooled)
 
     def take_pending(self) -> RoadStep | None:
