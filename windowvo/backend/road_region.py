@@ -218,8 +218,8 @@ class _Warp:
 
     def correlations_at(self, RX: np.ndarray, tn: np.ndarray, ss) -> list[float]:
         """The correlation of the candidate warps whose points in camera k are ``RX[p] + ss[l] tn[p]``, for each of P
-        floors (``on_planes``: (P, N, 3) each) and L lengths ``ss``: P x L candidates in that order (the floor's index
-        the slower). Each coordinate is built on its own: the same float32 numbers as the points built whole, without
+        floors (``on_planes``: (P, N, 3) each; one floor's ``RX`` (1, N, 3) goes with P directions' ``tn``) and L
+        lengths ``ss``: P x L candidates in that order (the floor's index the slower). Each coordinate is built on its own: the same float32 numbers as the points built whole, without
         their (P L, N, 3) array."""
         s = np.asarray(ss, np.float32)[None, :, None]
         n = RX.shape[1]
@@ -411,7 +411,7 @@ def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, c
     def directions(span: float, steps: int) -> None:
         xs = p[1] + np.linspace(-span, span, steps)
         n = rot_x(float(p[2])) @ warp.n_cam
-        RX, tn = warp.on_planes(np.tile(n, (steps, 1)), np.stack([rot_y(float(x)) @ t_dir for x in xs]))
+        RX, tn = warp.on_planes(n[None], np.stack([rot_y(float(x)) @ t_dir for x in xs]))  # one floor, its points once
         pick(xs, np.asarray(warp.correlations_at(RX, tn, [np.exp(p[0])])), 1)
 
     def lengths_and_pitches(span_s: float, span_t: float, steps: int) -> tuple[float, bool, bool]:
