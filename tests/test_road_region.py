@@ -13,7 +13,6 @@ import pytest
 
 from windowvo.backend.road_region import (
     RoadRegionCue,
-    RoadStep,
     _Warp,
     base_distance,
     floor_in_camera,
@@ -23,7 +22,6 @@ from windowvo.backend.road_region import (
     range_factor,
     region_rays,
     smoothed,
-    step_sigma,
 )
 from windowvo.camera import CameraModel
 from windowvo.config import BackendConfig, RoadRegionConfig, RobustKind, config_from_dict
@@ -276,22 +274,6 @@ def test_the_range_factor_is_zero_at_the_measured_length_and_whitened_by_its_sig
     assert f.error(v) == pytest.approx(0.0, abs=1e-12)
     v.update(2, gtsam.Pose3(gtsam.Rot3.Yaw(0.1), np.array([1.0, 2.52, 0.0])))
     assert f.error(v) == pytest.approx(0.5 * (0.02 / 0.01) ** 2, rel=1e-6)
-
-
-def test_a_slow_step_is_measured_less_well_when_its_sigma_follows_the_floors_image_motion():
-    """``flow_sigma_px``: a step whose floor moves 3 px is known to 0.2 / 3 of its length, one that moves 30 px to
-    ``sigma_fraction`` (3%); off (the default), 3% whatever the motion. And ``measure_step`` reports the motion."""
-    def step(flow: float) -> RoadStep:
-        return RoadStep(5, 1.0, 2.0, 1.0, 0.9, 1000, 0.0, flow)
-
-    on = RoadRegionConfig(enabled=True, flow_sigma_px=0.2)
-    assert step_sigma(step(3.0), on) == pytest.approx(2.0 * 0.2 / 3.0)
-    assert step_sigma(step(30.0), on) == pytest.approx(2.0 * 0.03)
-    assert step_sigma(step(3.0), RoadRegionConfig(enabled=True)) == pytest.approx(2.0 * 0.03)
-    cam, tex = _camera(), _texture(1, lane_lines=False)
-    T0, T1 = _step()
-    fit = _measure(cam, T0, T1, tex)
-    assert fit is not None and 2.0 < fit.flow_px < 200.0, fit
 
 
 def test_the_cue_measures_consecutive_keyframes_only():
