@@ -289,9 +289,6 @@ class RoadRegionConfig(_Section):
                              "on the pooled pitch. 3 was measured: 2.3x less cost, but the KITTI excerpts' fused runs "
                              "1.54x worse (docs/scale_suite.md)")
     sigma_fraction: float = Field(0.03, gt=0, description="sigma of a measured step's length, as a share of it")
-    flow_sigma_px: float | None = Field(None, gt=0, description="... or, if larger, this many pixels over the floor "
-                                        "region's median image motion over the step (a slow step's floor moves few "
-                                        "pixels and is measured less well). null: sigma_fraction alone")
     max_floor_landmarks: int | None = Field(
         50, ge=1, description="measure a step only while the window holds fewer than this many floor landmarks "
         "tied to the floor (the corners then tell the floor's scale already, and the region's pixels are the same "

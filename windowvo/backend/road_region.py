@@ -75,7 +75,6 @@ class RoadStep:
     correlation: float  # at the best scale
     n_pixels: int
     pitch_deg: float = 0.0  # the floor's pitch the step found against the assumed normal (camera x axis)
-    flow_px: float = 0.0  # the floor region's median image motion over the step (``road_region.flow_sigma_px``)
 
 
 @dataclass(frozen=True)
@@ -87,7 +86,6 @@ class StepFit:
     correlation: float
     n_pixels: int
     pitch_deg: float = 0.0
-    flow_px: float = 0.0  # the region's median image motion at the length found (on the assumed floor)
 
 
 def floor_in_camera(T_base_cam: np.ndarray, n_base: np.ndarray, floor_offset: float) -> tuple[np.ndarray, float]:
@@ -338,9 +336,9 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
     s_est = d_est / h
     if warp.flow_px(s_est) < cfg.min_flow_px:
         return None
-    fit = _search_with_pitch(warp, t_dir, s_est, h, cfg) if cfg.pitch_search_deg > 0 else _search(warp, t_dir, s_est,
-                                                                                                      h, cfg)
-    return None if fit is None else replace(fit, flow_px=warp.flow_px(fit.camera_m / h))
+    if cfg.pitch_search_deg > 0:
+        return _search_with_pitch(warp, t_dir, s_est, h, cfg)
+    return _search(warp, t_dir, s_est, h, cfg)
 
 
 def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig) -> StepFit | None:
@@ -469,16 +467,6 @@ def range_factor(key0: int, key1: int, base_m: float, sigma_m: float, robust_kin
     return gtsam.RangeFactorPose3(key0, key1, float(base_m), noise)
 
 
-def step_sigma(step: RoadStep, cfg: RoadRegionConfig) -> float:
-    """The sigma (m) of a measured step's length between the bases: ``sigma_fraction`` of it, or, with
-    ``flow_sigma_px``, the share its image motion gives if larger (an alignment good to that many pixels measures a
-    step whose floor moves F pixels to flow_sigma_px / F of its length: slow steps are measured less well)."""
-    share = cfg.sigma_fraction
-    if cfg.flow_sigma_px is not None and step.flow_px > 0:
-        share = max(share, cfg.flow_sigma_px / step.flow_px)
-    return share * step.base_m
-
-
 MIN_PITCH_SEARCHES = 5  # the pooled pitch is tested only once this many searches found one
 
 
@@ -539,8 +527,7 @@ class RoadRegionCue:
         if fit is None:
             return None
         step = RoadStep(k, fit.camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, fit.camera_m),
-                        float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])), fit.correlation, fit.n_pixels, fit.pitch_deg,
-                        fit.flow_px)
+                        float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])), fit.correlation, fit.n_pixels, fit.pitch_deg)
         self.pending = step
         return step
 
@@ -660,7 +647,7 @@ class RoadRegion:
         if step is None or step.keyframe - 1 <= w0 or not self.floor.ties_allowed():
             return
         r = self.cfg.ground.road_region
-        graph.add(range_factor(X(step.keyframe - 1), X(step.keyframe), step.base_m, step_sigma(step, r),
+        graph.add(range_factor(X(step.keyframe - 1), X(step.keyframe), step.base_m, r.sigma_fraction * step.base_m,
                                self.cfg.ground.robust, threshold(r.robust_k, 1, self.cfg)))
         self.n_factors += 1
 
