@@ -254,7 +254,8 @@ class RoadRegionConfig(_Section):
     half_width_heights: float = Field(1.0, gt=0, description="its half width beside the optical axis, in camera "
                                       "heights")
     blur_px: float = Field(1.0, ge=0, le=5, description="sigma (pixels) of the Gaussian the two images are smoothed "
-                           "by before the region is sampled (0: none)")
+                           "by before the region is sampled (0: none). 0.5 was measured: the scale suite's streets better, the held-out "
+                           "and ten more streets not (docs/scale_suite.md)")
     step_px: int = Field(2, ge=1, le=16, description="the region's pixels are sampled every this many pixels")
     max_pixels: int = Field(2000, ge=100, description="at most this many sampled pixels (an even subsample; the "
                             "search's time is mostly per pixel: 6000 take about twice 2000's)")
@@ -297,7 +298,8 @@ class RoadRegionConfig(_Section):
                                      "tilting by more than ground.rocking_jitter_deg between keyframes), measure each "
                                      "step on the floor along the window's mean floor normal, seen from the step's "
                                      "first keyframe (its rocking applied) instead of the set-up's; false: always the "
-                                     "set-up's (or the learnt mount's) normal")
+                                     "set-up's (or the learnt mount's) normal. Off by default: the measured steps' spread halves on "
+                                     "rocking runs, the scale suite's fused runs 1.002x (docs/scale_suite.md)")
     robust_k: float | None = Field(None, gt=0, description="threshold of the range factor's robust loss (the "
                                    "ground factors' kind) in sigmas; default: the 1-D chi-square quantile of "
                                    "backend.robust_confidence")

@@ -219,8 +219,8 @@ class _Warp:
     def correlations_at(self, RX: np.ndarray, tn: np.ndarray, ss) -> list[float]:
         """The correlation of the candidate warps whose points in camera k are ``RX[p] + ss[l] tn[p]``, for each of P
         floors (``on_planes``: (P, N, 3) each; one floor's ``RX`` (1, N, 3) goes with P directions' ``tn``) and L
-        lengths ``ss``: P x L candidates in that order (the floor's index the slower). Each coordinate is built on its own: the same float32 numbers as the points built whole, without
-        their (P L, N, 3) array."""
+        lengths ``ss``: P x L candidates in that order (the floor's index the slower). Each coordinate is built on
+        its own: the same float32 numbers as the points built whole, without their (P L, N, 3) array."""
         s = np.asarray(ss, np.float32)[None, :, None]
         n = RX.shape[1]
         X, Y, Z = ((RX[:, None, :, i] + s * tn[:, None, :, i]).reshape(-1, n) for i in range(3))
@@ -583,7 +583,6 @@ class RoadRegion:
         self.ratio = float("nan")  # the last keyframe's measured step over the estimate's (nan: none)
         self.pitch_deg = float("nan")  # the floor's pitch against the assumed one it was measured on (nan: none)
         self.n_factors = 0  # range factors added to the smoother
-        self.levelled = False  # the last step was measured on the rocking base's level floor (``level_floor``)
 
     def after_update(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None,
                      n_floor_tied: int = 0, w0: int | None = None) -> float | None:
@@ -593,7 +592,6 @@ class RoadRegion:
         landmarks the window ties to the floor (``road_region.max_floor_landmarks``); ``w0``: the window's first
         keyframe (the keyframes a rocking base's level floor is taken over; default: keyframe k-1 alone)."""
         self.ratio = self.pitch_deg = float("nan")
-        self.levelled = False
         if self.cue is None:
             return None
         self.cue.keep_image(k, image, mask)
@@ -606,7 +604,7 @@ class RoadRegion:
         n_mount = np.array([0.0, 0.0, 1.0]) if n is None else n
         level = self.level_floor(k, k - 1 if w0 is None else w0, n_mount)
         if level is not None:
-            self.levelled, n = True, level
+            n = level
         step = self.cue.measure(k, self.kf_pose[k - 1], self.kf_pose[k], n_mount if n is None else n,
                                 self.floor.floor_offset(n), n_mount)
         if step is None or step.camera_m <= 0:
@@ -624,7 +622,9 @@ class RoadRegion:
         floor model's test, ``attitude_jitter_deg``). The floor then lies along their mean (``level_up``: rocking
         is zero mean, and vision's keyframe rotations are good to a few hundredths of a degree while the tilt it
         rocks by is a degree and more), seen from keyframe k-1's attitude: its rocking is applied. With the
-        set-up's normal instead, each degree of rocking is about 9% of a car's step measured by the region."""
+        set-up's normal instead, each degree of rocking is about 9% of a car's step measured by the region. Off by
+        default (``road_region.level_when_rocking``): on the scale suite the fused runs came out 1.002x
+        (docs/scale_suite.md)."""
         g = self.cfg.ground
         if not g.road_region.level_when_rocking or g.rocking_jitter_deg is None:
             return None
