@@ -83,7 +83,8 @@ def study(folder: Path, cfg: RoadRegionConfig, every: int, truth_normal: bool) -
             n_base = T_wb[k - 1][:3, :3].T @ up
             offset = -float(T_wb[k - 1][2, 3])
         n_cam, h = rr.floor_in_camera(cam.T_base_cam, n_base, offset)
-        img0, img1 = (rr.smoothed(cv2.imread(str(images[i]), cv2.IMREAD_GRAYSCALE), cfg.blur_px) for i in (k - 1, k))
+        img0, img1 = (rr.smoothed(cv2.imread(str(images[i]), cv2.IMREAD_GRAYSCALE), cfg.blur_px, cfg.normalise_px,
+                                   cfg.normalise_floor) for i in (k - 1, k))
         T_wc0, T_wc1 = T_wb[k - 1] @ cam.T_base_cam, T_wb[k] @ cam.T_base_cam
         fit = rr.measure_step(cam, img0, img1, T_wc0, T_wc1, n_cam, h, cfg, grid)
         if fit is not None:

@@ -24,7 +24,7 @@ from windowvo.backend.road_region import (
     smoothed,
 )
 from windowvo.camera import CameraModel
-from windowvo.config import BackendConfig, RoadRegionConfig, RobustKind, config_from_dict
+from windowvo.config import BackendConfig, RegionInterpolation, RoadRegionConfig, RobustKind, config_from_dict
 from windowvo.errors import ConfigError
 from windowvo.geometry import make_T, rot_x, rot_y, rot_z
 from windowvo.types import DistortionModel
@@ -154,27 +154,30 @@ def test_a_floor_pitched_against_the_set_up_is_searched_out(pitch_deg):
     assert abs(abs(searched.pitch_deg) - 1.0) < 0.3, searched
 
 
-def _reference_correlation(cam: CameraModel, img0, img1, uv0, Xk: np.ndarray, mask1) -> float:
-    """Zero-mean normalised cross-correlation of the region's pixels in image k-1 with image k sampled (bilinear) at
-    the points ``Xk`` (N, 3, camera k), over the points in front of camera k, inside its image and off its mask: the
-    plain formula, one candidate at a time."""
+def _reference_correlation(cam: CameraModel, img0, img1, uv0, Xk: np.ndarray, mask1, cubic: bool = False) -> float:
+    """Zero-mean normalised cross-correlation of the region's pixels in image k-1 with image k sampled (bilinear, or
+    bicubic) at the points ``Xk`` (N, 3, camera k), over the points in front of camera k, inside its image (far
+    enough from its edges that the interpolation reads its own pixels only) and off its mask: the plain formula, one
+    candidate at a time."""
     front = Xk[:, 2] > 1e-6
     uv = np.full((len(Xk), 2), -1.0)
     uv[front] = cam.project(Xk[front])
-    ok = front & (uv[:, 0] >= 1) & (uv[:, 0] <= cam.width - 2) & (uv[:, 1] >= 1) & (uv[:, 1] <= cam.height - 2)
+    far = 3 if cubic else 2
+    ok = front & (uv[:, 0] >= 1) & (uv[:, 0] <= cam.width - far) & (uv[:, 1] >= 1) & (uv[:, 1] <= cam.height - far)
     ok[ok] &= mask1[(uv[ok, 1] + 0.5).astype(int), (uv[ok, 0] + 0.5).astype(int)] != 0
     m = uv[ok].astype(np.float32)[None]
-    b = cv2.remap(img1, m[..., 0], m[..., 1], cv2.INTER_LINEAR).ravel().astype(float)
+    b = cv2.remap(img1, m[..., 0], m[..., 1], cv2.INTER_CUBIC if cubic else cv2.INTER_LINEAR).ravel().astype(float)
     a = img0[uv0[ok, 1], uv0[ok, 0]].astype(float)
     a, b = a - a.mean(), b - b.mean()
     return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
 
 
-@pytest.mark.parametrize("distorted", [False, True])
-def test_every_candidate_of_a_grid_of_floors_and_lengths_correlates_as_the_plain_formula_says(distorted):
+@pytest.mark.parametrize("distorted,cubic", [(False, False), (True, False), (False, True)])
+def test_every_candidate_of_a_grid_of_floors_and_lengths_correlates_as_the_plain_formula_says(distorted, cubic):
     """The search scores its candidates all at once (``_Warp.correlations_at``: P floors x L lengths, by weighted
     sums, each coordinate built on its own); each must be the plain correlation of its own warp, also where part of
-    the region leaves image k (the longest step) or lands on its mask, and through a distorted lens."""
+    the region leaves image k (the longest step) or lands on its mask, through a distorted lens, and with image k
+    sampled bicubic (``road_region.interpolation``)."""
     cam = _camera()
     if distorted:
         cam = CameraModel(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, DistortionModel.RADTAN,
@@ -189,15 +192,56 @@ def test_every_candidate_of_a_grid_of_floors_and_lengths_correlates_as_the_plain
     n_cam, h = floor_in_camera(cam.T_base_cam, np.array([0.0, 0.0, 1.0]), 0.0)
     cfg = RoadRegionConfig(enabled=True)
     uv0, X0 = region_rays(pixel_grid(cam, cfg.step_px), n_cam, h, cfg)
-    warp = _Warp(cam, img0, img1, uv0, X0, T_c1_c0[:3, :3], t / np.linalg.norm(t), n_cam, h, 20, mask1)
+    warp = _Warp(cam, img0, img1, uv0, X0, T_c1_c0[:3, :3], t / np.linalg.norm(t), n_cam, h, 20, mask1,
+                 RegionInterpolation.CUBIC if cubic else RegionInterpolation.LINEAR)
     ns = np.stack([rot_x(np.radians(a)) @ n_cam for a in (-1.5, 0.0, 2.0)])
     RX, tn = warp.on_planes(ns, np.tile(t / np.linalg.norm(t), (3, 1)))
     ss = np.linalg.norm(t) / h * np.array([0.7, 1.0, 1.3, 6.0])
     got = np.reshape(warp.correlations_at(RX, tn, ss), (3, 4))
     want = np.array([[_reference_correlation(cam, img0, img1, uv0, RX[p].astype(float) + s * tn[p].astype(float),
-                                             mask1) for s in ss] for p in range(3)])
+                                             mask1, cubic) for s in ss] for p in range(3)])
     assert got == pytest.approx(want, abs=1e-4)
     assert got[1, 1] > 0.9 and got[1, 1] == got.max()  # the true floor and length correlate best
+
+
+def test_local_contrast_normalisation_evens_a_bright_marking_with_the_floors_texture():
+    """``road_region.normalise_px``: a marking 90 grey levels bright beside a texture of 5 levels, normalised over
+    6 px neighbourhoods, stands out of it by no more than twice its amplitude (18x before); off, the image is the
+    smoothed one unchanged."""
+    rng = np.random.default_rng(4)
+    img = np.clip(110 + 5 * cv2.GaussianBlur(rng.normal(0, 1, (120, 160)).astype(np.float32), (0, 0), 1.5)
+                  / 0.19, 0, 255).astype(np.uint8)
+    img[:, 78:83] = np.clip(img[:, 78:83].astype(int) + 90, 0, 255)
+    plain, even = smoothed(img, 0.0), smoothed(img, 0.0, normalise_px=6.0)
+    assert np.array_equal(smoothed(img, 1.0, normalise_px=0.0), smoothed(img))
+
+    def amplitude(x: np.ndarray, cols: slice) -> float:
+        return float(np.percentile(np.abs(x[10:-10, cols] - np.median(x[10:-10, 10:50])), 95))
+
+    texture, marking = slice(10, 50), slice(78, 83)
+    assert amplitude(plain, marking) > 8 * amplitude(plain, texture)
+    assert amplitude(even, marking) < 2 * amplitude(even, texture)
+    assert abs(float(np.mean(even[10:-10, 10:50]))) < 0.3  # zero mean where the texture is
+
+
+@pytest.mark.parametrize("normalise_px", [0.0, 6.0])
+def test_the_step_and_the_pitch_are_measured_with_bicubic_sampling(normalise_px):
+    """``interpolation: cubic`` with the images unsmoothed (``blur_px: 0``), plain or contrast-normalised: the step's
+    length within 1% and the floor's pitch within 0.3 deg on ray-cast floors with lane lines (measured: within
+    0.81% and 0.15 deg on four textures)."""
+    cam = _camera()
+    cfg = RoadRegionConfig(enabled=True, blur_px=0.0, interpolation=RegionInterpolation.CUBIC,
+                           normalise_px=normalise_px)
+    n_cam, h = floor_in_camera(cam.T_base_cam, np.array([0.0, 0.0, 1.0]), 0.0)
+    T0, T1 = _step()
+    d = _camera_distance(cam, T0, T1)
+    for seed in (0, 3):
+        tex = _texture(seed, lane_lines=True)
+        img0, img1 = (smoothed(_render(cam, T, tex), 0.0, normalise_px) for T in (T0, T1))
+        got = measure_step(cam, img0, img1, T0 @ cam.T_base_cam, T1 @ cam.T_base_cam, n_cam, h, cfg)
+        assert got is not None
+        assert abs(got.camera_m / d - 1.0) < 0.01, (seed, got)
+        assert abs(got.pitch_deg) < 0.3, (seed, got)
 
 
 def test_the_pooled_pitch_is_the_searches_median_once_it_stands_out_of_their_spread():

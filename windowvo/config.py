@@ -79,6 +79,13 @@ class MountCalibration(str, enum.Enum):
     ON = "on"  # always, and no floor point is tied before the normal is learnt
 
 
+class RegionInterpolation(str, enum.Enum):
+    """How the floor's region samples the newer image between its pixels (``ground.road_region.interpolation``)."""
+
+    LINEAR = "linear"  # bilinear: smooths a sample by an amount that depends on where it falls between pixels
+    CUBIC = "cubic"  # bicubic: less of that smoothing, so less of the bias it gives a warp's scale
+
+
 class RunMode(str, enum.Enum):
     SEQUENTIAL = "sequential"  # one process, one frame after the other (tests, debugging)
     PIPELINED = "pipelined"  # the back end in a worker process beside decoding and the front end
@@ -256,6 +263,17 @@ class RoadRegionConfig(_Section):
     blur_px: float = Field(1.0, ge=0, le=5, description="sigma (pixels) of the Gaussian the two images are smoothed "
                            "by before the region is sampled (0: none). 0.5 was measured: the scale suite's streets better, the held-out "
                            "and ten more streets not (docs/scale_suite.md)")
+    interpolation: RegionInterpolation = Field(RegionInterpolation.LINEAR, description="how the newer image is "
+                                               "sampled between its pixels (the older one is read at its pixels): "
+                                               "linear smooths a sample by how far it falls between pixels, which "
+                                               "biases the floor's pitch and the step's length a little (rendered "
+                                               "streets at ground truth's motion, docs/scale_suite.md); cubic less")
+    normalise_px: float = Field(0.0, ge=0, le=50, description="each image's local contrast normalised before the "
+                                "region is sampled: a pixel's difference from its neighbourhood's mean over the "
+                                "neighbourhood's standard deviation (Gaussian neighbourhoods of this sigma, pixels), "
+                                "so that a bright marking weighs no more than the asphalt's texture; 0: off")
+    normalise_floor: float = Field(2.0, gt=0, description="with normalise_px: grey levels added to the neighbourhood's "
+                                   "standard deviation (flat areas' noise is not amplified beyond this)")
     step_px: int = Field(2, ge=1, le=16, description="the region's pixels are sampled every this many pixels")
     max_pixels: int = Field(2000, ge=100, description="at most this many sampled pixels (an even subsample; the "
                             "search's time is mostly per pixel: 6000 take about twice 2000's)")

@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 
 from ..camera import CameraModel
-from ..config import BackendConfig, RoadRegionConfig
+from ..config import BackendConfig, RegionInterpolation, RoadRegionConfig
 from ..geometry import rot_x, rot_y
 from .floor import MIN_ROCKING_KEYFRAMES
 from .ground import attitude_jitter_deg, level_up
@@ -62,6 +62,7 @@ PITCH_LENGTH_SPAN = 12.0
 REMAP_COLS = 16384  # cv2.remap's map is folded into rows of this many points (it takes fewer than SHRT_MAX columns)
 MEMO_REGIONS = 8  # floor rays a cue keeps (one set per assumed floor)
 BLUR_SIGMA_PX = 1.0  # the images' smoothing before sampling by default (``road_region.blur_px``)
+INTERPOLATION = {RegionInterpolation.LINEAR: cv2.INTER_LINEAR, RegionInterpolation.CUBIC: cv2.INTER_CUBIC}
 
 
 @dataclass(frozen=True)
@@ -133,10 +134,18 @@ def region_rays(grid: tuple[np.ndarray, np.ndarray], n_cam: np.ndarray, h: float
     return uv, X
 
 
-def smoothed(image: np.ndarray, sigma_px: float = BLUR_SIGMA_PX) -> np.ndarray:
-    """The float image the measurement samples: smoothed by a Gaussian of ``sigma_px`` (0: as it is)."""
-    img = image.astype(np.float32)
-    return cv2.GaussianBlur(img, (0, 0), sigma_px) if sigma_px > 0 else img
+def smoothed(image: np.ndarray, sigma_px: float = BLUR_SIGMA_PX, normalise_px: float = 0.0,
+             normalise_floor: float = 2.0) -> np.ndarray:
+    """The float image the measurement samples: smoothed by a Gaussian of ``sigma_px`` (0: as it is), then, with
+    ``normalise_px``, its local contrast normalised: ``(I - mean) / (std + normalise_floor)`` over Gaussian
+    neighbourhoods of that sigma (the correlation is then not ruled by a few high-contrast pixels)."""
+    img: np.ndarray = image.astype(np.float32)
+    if sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), sigma_px)
+    if normalise_px <= 0:
+        return img
+    d = img - cv2.GaussianBlur(img, (0, 0), normalise_px)
+    return d / (np.sqrt(cv2.GaussianBlur(d * d, (0, 0), normalise_px)) + np.float32(normalise_floor))
 
 
 class _Warp:
@@ -144,8 +153,9 @@ class _Warp:
 
     def __init__(self, camera: CameraModel, img0: np.ndarray, img1: np.ndarray, uv0: np.ndarray, X0: np.ndarray,
                  R: np.ndarray, t_dir: np.ndarray, n_cam: np.ndarray, h: float, min_pixels: int,
-                 mask1: np.ndarray | None = None):
+                 mask1: np.ndarray | None = None, interpolation: RegionInterpolation = RegionInterpolation.LINEAR):
         self.camera, self.img1, self.mask1 = camera, img1, mask1
+        self.interpolation = INTERPOLATION[interpolation]
         self.pinhole = not camera.has_distortion
         self.a = img0[uv0[:, 1], uv0[:, 0]].astype(np.float32)
         a = self.a.astype(np.float64)
@@ -158,7 +168,9 @@ class _Warp:
         self.set_direction(t_dir)
         self.n_last = 0
         self.min_pixels = min_pixels
-        self.bounds = (1.0, camera.width - 2.0, 1.0, camera.height - 2.0)
+        # samples whose interpolation reads only image k's own pixels (bicubic: one more on the far sides)
+        far = 2.0 if interpolation is RegionInterpolation.LINEAR else 3.0
+        self.bounds = (1.0, camera.width - far, 1.0, camera.height - far)
 
     def set_direction(self, t_dir: np.ndarray) -> None:
         self.tn = np.outer(self.nX, t_dir).astype(np.float32)  # t_dir (n . X) per point: s times it is the translation
@@ -245,9 +257,10 @@ class _Warp:
         self.n_last = int(counts[-1])
         S, N = inside.shape
         if N < REMAP_COLS:
-            b = cv2.remap(self.img1, u, v, cv2.INTER_LINEAR).astype(np.float64)
+            b = cv2.remap(self.img1, u, v, self.interpolation).astype(np.float64)
         else:
-            b = _remap(self.img1, np.stack([u.ravel(), v.ravel()], axis=1)).reshape(S, N).astype(np.float64)
+            b = _remap(self.img1, np.stack([u.ravel(), v.ravel()], axis=1),
+                       self.interpolation).reshape(S, N).astype(np.float64)
         b *= inside
         w = inside.astype(np.float64)
         n = np.maximum(counts, 1).astype(np.float64)
@@ -268,9 +281,9 @@ class _Warp:
         return float(np.median(np.linalg.norm(uv1[ok] - uv0[ok], axis=1))) if ok.any() else 0.0
 
 
-def _remap(img: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """``img`` sampled (bilinear) at the points ``m`` (M, 2): one ``cv2.remap``, its map folded into rows (remap takes
-    at most SHRT_MAX columns); each point's value is its own, however the map is folded."""
+def _remap(img: np.ndarray, m: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+    """``img`` sampled (``interpolation``: OpenCV's) at the points ``m`` (M, 2): one ``cv2.remap``, its map folded into
+    rows (remap takes at most SHRT_MAX columns); each point's value is its own, however the map is folded."""
     n = len(m)
     if n == 0:
         return np.zeros(0, np.float32)
@@ -279,7 +292,7 @@ def _remap(img: np.ndarray, m: np.ndarray) -> np.ndarray:
     mx = np.zeros(rows * cols, np.float32)
     my = np.zeros(rows * cols, np.float32)
     mx[:n], my[:n] = m[:, 0], m[:, 1]
-    return cv2.remap(img, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR).ravel()[:n]
+    return cv2.remap(img, mx.reshape(rows, cols), my.reshape(rows, cols), interpolation).ravel()[:n]
 
 
 def _parabola_peak(xs: np.ndarray, cs: np.ndarray, i: int) -> float:
@@ -332,7 +345,7 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
     if len(uv0) < cfg.min_pixels:
         return None
     t_dir = t / d_est
-    warp = _Warp(camera, img0, img1, uv0, X0, R, t_dir, n_cam, h, cfg.min_pixels, masks[1])
+    warp = _Warp(camera, img0, img1, uv0, X0, R, t_dir, n_cam, h, cfg.min_pixels, masks[1], cfg.interpolation)
     s_est = d_est / h
     if warp.flow_px(s_est) < cfg.min_flow_px:
         return None
@@ -508,7 +521,8 @@ class RoadRegionCue:
         """Keyframe k's image (grey, as measured) and its usable pixels (0: masked; None: all); no image: the step
         to it is not measured."""
         self._previous = self._image
-        self._image = None if image is None else (k, smoothed(image, self.cfg.blur_px), mask)
+        c = self.cfg
+        self._image = None if image is None else (k, smoothed(image, c.blur_px, c.normalise_px, c.normalise_floor), mask)
 
     def measure(self, k: int, T_world_base0: np.ndarray, T_world_base1: np.ndarray, n_base: np.ndarray,
                 floor_offset: float, pool_normal: np.ndarray | None = None) -> RoadStep | None:
