@@ -1,6 +1,6 @@
 """Study (issue #26): the floor's region measured at ground truth's motion, step by step, against the true lengths.
 
-    python scripts/road_region_at_truth.py FOLDER... [--every N] [--set KEY=VALUE ...] [--normal setup|truth]
+    python scripts/road_region_at_truth.py FOLDER... [--every N] [--set KEY=VALUE ...] [--normal setup|truth] [--steps]
 
 Each FOLDER is a rendered sequence (the scale suite's cache: camera.yaml, groundtruth.txt, images/) or a KITTI
 excerpt (calib.txt, poses.txt, image_0/; camera 0 taken 1.65 m above a level base, as the scale suite does). For each
@@ -9,8 +9,10 @@ floor the set-up assumes (``--normal setup``: the base's z axis) or on the true 
 attitude (``--normal truth``: a rocking base's tilt applied), with ``backend.ground.road_region`` as configured
 (``--set road_region_key=value``, e.g. ``--set blur_px=0.5``; ``pitch_search_deg=0`` for the length on the assumed
 floor alone). Printed per sequence: the steps measured, the measured length over the true one (median, median
-absolute deviation, RMS), and the floor's pitch the steps found. The measurement alone, without the estimator:
-what docs/scale_suite.md's "The region's pitch search at ground truth's motion" quotes.
+absolute deviation, RMS), and the floor's pitch the steps found; with ``--steps`` before it each frame pair's
+pitch and length error (``k:pitch/error%``, ``k:-`` where the region measured nothing), to see how they change
+along the sequence. The measurement alone, without the estimator: what docs/scale_suite.md's "The region's pitch
+search at ground truth's motion" quotes.
 """
 
 from __future__ import annotations
@@ -70,12 +72,12 @@ def load(folder: Path) -> tuple[CameraModel, list[np.ndarray], list[Path]]:
     return cam, T_wb, sorted((folder / "images").glob("*.png"))
 
 
-def study(folder: Path, cfg: RoadRegionConfig, every: int, truth_normal: bool) -> str:
+def study(folder: Path, cfg: RoadRegionConfig, every: int, truth_normal: bool, steps: bool = False) -> str:
     cam, T_wb, images = load(folder)
     grid = rr.pixel_grid(cam, cfg.step_px)
     if cfg.pitch_search_deg > 0:  # a step's own pitch search, on its region (``RoadRegionCue``'s)
         cfg = cfg.model_copy(update={"far_heights": cfg.pitch_far_heights})
-    ratios, pitches = [], []
+    ratios, pitches, listing = [], [], []
     up = np.array([0.0, 0.0, 1.0])
     for k in range(1, min(len(images), len(T_wb)), every):
         n_base, offset = up, 0.0  # the floor z = 0 under the base
@@ -90,11 +92,13 @@ def study(folder: Path, cfg: RoadRegionConfig, every: int, truth_normal: bool) -
         if fit is not None:
             ratios.append(fit.camera_m / float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])))
             pitches.append(fit.pitch_deg)
+        listing.append(f"{k}:-" if fit is None else f"{k}:{fit.pitch_deg:+.2f}/{100 * (ratios[-1] - 1):+.1f}")
+    head = f"{folder.name} steps (frame:pitch deg/length error %): {' '.join(listing)}\n" if steps else ""
     if not ratios:
-        return f"{folder.name:34s} no step measured"
+        return f"{head}{folder.name:34s} no step measured"
     e, p = np.asarray(ratios) - 1.0, np.asarray(pitches)
     med, pmed = float(np.median(e)), float(np.median(p))
-    return (f"{folder.name:34s} steps {len(e):3d}  length {100 * med:+6.2f}% (MAD {100 * np.median(np.abs(e - med)):.2f}%, "
+    return (f"{head}{folder.name:34s} steps {len(e):3d}  length {100 * med:+6.2f}% (MAD {100 * np.median(np.abs(e - med)):.2f}%, "
             f"RMS {100 * np.sqrt(np.mean(e * e)):.2f}%)  pitch {pmed:+.2f} deg (MAD {np.median(np.abs(p - pmed)):.2f})")
 
 
@@ -106,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="a backend.ground.road_region key (repeatable)")
     ap.add_argument("--normal", choices=["setup", "truth"], default="setup",
                     help="the floor assumed: the set-up's (the base's z) or ground truth's (the rocking applied)")
+    ap.add_argument("--steps", action="store_true", help="also each frame pair's pitch and length error")
     a = ap.parse_args(argv)
     try:
         if a.every < 1:
@@ -118,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
             over[key.strip()] = yaml.safe_load(value)
         cfg = RoadRegionConfig.model_validate({"enabled": True, **over})
         for folder in a.folders:
-            print(study(folder, cfg, a.every, a.normal == "truth"), flush=True)
+            print(study(folder, cfg, a.every, a.normal == "truth", a.steps), flush=True)
     except (WindowVOError, ValueError, OSError) as err:
         print(f"road_region_at_truth.py: error: {' '.join(str(err).split())[:300]}", file=sys.stderr)
         return 2

@@ -38,3 +38,20 @@ def test_kitti_steps_at_truth_on_the_assumed_floor(capsys):
     assert line.startswith("kitti06_000-050") and "steps   5" in line
     length = float(line.split("length")[1].split("%")[0])
     assert 3.0 < length < 12.0, line
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "kitti01_000-050").is_dir(), reason="KITTI excerpts not in ../shared/data")
+def test_each_step_is_listed_along_the_sequence(capsys):
+    """``--steps``: every studied frame pair in order, its pitch and length error (or ``-``), before the summary;
+    the listing's errors are the summary's steps."""
+    mod = _script()
+    assert mod.main([str(SHARED_DATA / "kitti01_000-050"), "--every", "12", "--steps"]) == 0
+    listing, summary = capsys.readouterr().out.strip().splitlines()
+    entries = listing.split(": ", 1)[1].split()
+    assert [int(e.split(":")[0]) for e in entries] == [1, 13, 25, 37, 49]
+    measured = [e for e in entries if not e.endswith(":-")]
+    assert f"steps {len(measured):3d}" in summary
+    errors = sorted(float(e.split("/")[1]) for e in measured)
+    median = float(summary.split("length")[1].split("%")[0])
+    assert median == pytest.approx(errors[len(errors) // 2] if len(errors) % 2 else
+                                   (errors[len(errors) // 2 - 1] + errors[len(errors) // 2]) / 2, abs=0.11)
