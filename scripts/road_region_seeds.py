@@ -141,11 +141,11 @@ def main() -> int:
     for scene in ("warehouse", "street", "room", "kitti"):
         fused = [v[1] / v[0] for n, v in results if n.startswith(scene)]
         floor = [v[3] / v[2] for n, v in results if n.startswith(scene)]
-        if scene == "kitti":
-            worse = [sum(v[i] > v[2 + i] for _, v in results) for i in (0, 1)]
-            print(f"kitti: {ways[0]} worse than {ways[1]} only: {worse[0]} of {len(results)} -> {worse[1]}")
         if not fused:
             continue
+        if scene == "kitti":
+            worse = [sum(v[i] > v[2 + i] for n, v in results if n.startswith(scene)) for i in (0, 1)]
+            print(f"kitti: {ways[0]} worse than {ways[1]} only: {worse[0]} of {len(fused)} -> {worse[1]}")
 
         def gmean(xs: list[float]) -> float:
             return math.exp(sum(map(math.log, xs)) / len(xs))
