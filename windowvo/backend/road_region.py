@@ -25,6 +25,10 @@ pitched against ``T_base_cam``) when known, else the set-up's (the base's z axis
 the window's mean of it seen from the step's first keyframe (``RoadRegion.level_floor``: the keyframe's rocking
 applied; the pitches are still pooled against the mount's normal). A step's sigma is ``sigma_fraction`` of its
 length. Masked pixels (``frontend`` masks: a bonnet, the robot's own body) are left out of the region in both images.
+The images are smoothed (``blur_px``) and, optionally, contrast-normalised (``normalise_px``: a bright lane line then
+weighs no more than the asphalt) before the region is sampled; image k is read between its pixels bilinearly, or
+bicubically (``interpolation``), which biases a warp's scale less (docs/scale_suite.md, "How the region samples its
+images").
 
 The measurement (``measure_step``, ``RoadRegionCue``: which images, which step) is numpy and OpenCV, tested on its own
 (``tests/test_road_region.py``); ``RoadRegion`` is the smoother's side (when to measure, when its range factor may go
