@@ -81,6 +81,7 @@ class FrontendOutput:
     n_detected: int = 0
     frontend_ms: float = 0.0
     standstill: bool = False
+    flow_px: float = float("nan")  # median image motion of the tracks since the last processed frame (px)
     # (N,) how much 1 px of image noise is stretched in pixels_undistorted at each track (largest
     # singular value of the undistortion Jacobian; 1 for a pinhole). None: not computed (all 1).
     pixel_sigma_scale: np.ndarray | None = None

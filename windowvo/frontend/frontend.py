@@ -265,6 +265,8 @@ class Frontend:
         self.kf_established: np.ndarray | None = None  # the keyframe's tracks of at least keyframes.min_track_age
         self.kf_time = 0.0
         self.focal = 0.5 * (camera.fx + camera.fy)
+        self._prev_ids: np.ndarray | None = None  # the last processed frame's tracks and rays (the frame-to-frame flow)
+        self._prev_xn: np.ndarray | None = None
 
     def mask_of(self, frame: Frame) -> np.ndarray | None:
         """The frame's usable pixels (uint8, 0 where features are forbidden): the static mask, the field of view and
@@ -301,6 +303,7 @@ class Frontend:
             n_detected=tracks.n_detected,
             spread=self.spread(tracks.pixels),
             pixel_sigma_scale=pixel_sigma_scale(self.camera, tracks.pixels),
+            flow_px=self._flow_since_last_frame(tracks.ids, xn),
         )
         lap(Stage.UNDISTORTION)  # mostly the undistorted pixels and their noise scales
         if two_view is not None:
@@ -325,6 +328,19 @@ class Frontend:
         lap(Stage.KEYFRAME)
         out.frontend_ms = (time.perf_counter() - t0) * 1000.0
         return out
+
+    def _flow_since_last_frame(self, ids: np.ndarray, xn: np.ndarray) -> float:
+        """Median image motion (pixels of an ideal pinhole camera) of the tracks shared with the last processed
+        frame; nan with fewer than ``MIN_COMMON_TRACKS`` of them. It grows with the speed (over the scene's depth):
+        the wheel clock compares its changes with the wheels' (``backend/wheel_clock.py``)."""
+        prev_ids, prev_xn = self._prev_ids, self._prev_xn
+        self._prev_ids, self._prev_xn = ids.copy(), xn.copy()
+        if prev_ids is None or prev_xn is None:
+            return float("nan")
+        _, i_cur, i_prev = np.intersect1d(ids, prev_ids, assume_unique=True, return_indices=True)
+        if len(i_cur) < MIN_COMMON_TRACKS:
+            return float("nan")
+        return float(np.median(np.linalg.norm(xn[i_cur] - prev_xn[i_prev], axis=1))) * self.focal
 
     def _track(self, frame: Frame):
         """The frame's tracks (after the gain normalisation) and their normalised rays; tracks past the

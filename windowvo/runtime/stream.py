@@ -60,6 +60,8 @@ CLOCK_CHAIN = 200
 CLOCK_INTERVALS = 100_000
 # The offset is re-estimated (and the one applied to the wheel readings updated) every this many new intervals.
 CLOCK_UPDATE_EVERY = 10
+# ... or every this many new frames with the image's motion (its speed changes: a stop shows the offset at once)
+CLOCK_UPDATE_FLOW_FRAMES = 20
 # Without wheels a frame's causal pose moves along the last keyframe step by its share of it (parallax over the
 # keyframe's own): not beyond this many steps, and held when the keyframe's own parallax was below this (px; a
 # keyframe made by time or track loss at a standstill says nothing of a step).
@@ -148,8 +150,10 @@ class Odometry:
         self.wheel_offset_s = odo_cfg.time_offset_ms / 1000.0 if fixed else 0.0
         self.offset_applied_since: float | None = None
         self._clock_updated_at = 0  # the clock's interval count at the last re-estimate
+        self._clock_flows_at = 0  # ... and its count of frame intervals with the image's motion
         self._shifted: tuple[WheelOdometry, float, WheelOdometry] | None = None  # (raw view, offset, shifted view)
         self._vision_yaw: list[tuple[float, float]] = []  # (keyframe time, heading chained from two-view rotations)
+        self._last_frontend_t: float | None = None  # the time of the last frame the front end tracked
         self.frames: list[tuple[int, float]] = []  # (frame index, timestamp) of every frame, skipped ones too
         self.online: list[np.ndarray] = []  # causal T_world_base per frame
         self.kf_frames: list[int] = []
@@ -235,6 +239,9 @@ class Odometry:
             self.offset_applied_since = float(t)
         frame = Frame(idx, float(t), image, mask)
         fo = self.frontend.process(frame, self._odom_since_kf(t), force_keyframe=is_last)
+        if self.clock is not None and self._last_frontend_t is not None:  # the image's motion since the frame before
+            self.clock.add_flow(self._last_frontend_t, float(t), fo.flow_px)
+        self._last_frontend_t = float(t)
         odom, note = None, ""
         if fo.is_keyframe:
             if self.cfg.backend.ground.road_region.enabled:  # a copy: the caller may reuse its buffer
@@ -270,9 +277,13 @@ class Odometry:
         """Re-estimate the offset every CLOCK_UPDATE_EVERY new intervals (from the wheel samples so far: causal) and,
         with ``time_offset: estimate``, read the wheels at the new estimate from now on once it is observable and told from a zero offset."""
         raw = self.wheels.view()
-        if self.clock is None or raw is None or self.clock.n_added - self._clock_updated_at < CLOCK_UPDATE_EVERY:
+        if self.clock is None or raw is None:
+            return
+        if (self.clock.n_added - self._clock_updated_at < CLOCK_UPDATE_EVERY
+                and self.clock.n_flows_added - self._clock_flows_at < CLOCK_UPDATE_FLOW_FRAMES):
             return
         self._clock_updated_at = self.clock.n_added
+        self._clock_flows_at = self.clock.n_flows_added
         est = self.clock.update(raw)
         if est.observable and est.zero_rejected and self.clock_mode is WheelClockMode.ESTIMATE:
             self.wheel_offset_s = est.offset_s
