@@ -216,8 +216,8 @@ class OdometryNoiseConfig(_Section):
     max_speed_m_s: float = Field(60.0, gt=0, description="a wheel sample implying a faster motion since the previous "
                                  "one (plus 0.5 m) is a teleport: rejected with a warning, that step vision only")
     time_offset: WheelClockMode = Field(WheelClockMode.ESTIMATE, description="the wheels' clock against the camera's "
-                                        "(t_wheels = t_camera + offset): estimate (from the turns, applied to the "
-                                        "wheel readings of the factors and the standstill check once observable, "
+                                        "(t_wheels = t_camera + offset): estimate (from the turns and the speed changes, "
+                                        "applied to the wheel readings of the factors and the standstill check once observable, "
                                         "as known at each keyframe), off (only reported) or fixed (time_offset_ms). "
                                         "A positive offset reads samples not yet arrived at a keyframe: up to "
                                         "max_gap_s past the newest one they are extrapolated at its velocity")

@@ -153,6 +153,7 @@ def _clock_dict(c) -> dict | None:
     return {"offset_ms": round(1000.0 * c.offset_s, 2) if c.observable else None,
             "sigma_ms": round(1000.0 * c.sigma_s, 2) if c.observable else None,
             "observable": c.observable, "told_from_zero": c.zero_rejected, "intervals": c.n_intervals,
+            "from_speed_changes": c.from_speed,
             "applied": applied,
             "applied_ms": round(1000.0 * c.applied_s, 2) if applied else None,
             "applied_since_s": round(c.applied_since_t, 3) if applied and c.applied_since_t is not None else None}
@@ -170,9 +171,10 @@ def _clock_line(r: RunResult) -> str | None:
             use += f" from t={c.applied_since_t:.2f} s"
     if not c.observable:
         return (f"wheel clock: offset to the camera not observable ({c.n_intervals} keyframe intervals; it shows in "
-                f"turns); {use}")
+                f"turns and in speed changes); {use}")
+    source = "the turns and the speed changes" if c.from_speed else "the turns"
     return (f"wheel clock: {1000.0 * c.offset_s:+.1f} ± {1000.0 * c.sigma_s:.1f} ms against the camera's "
-            f"(estimated from the turns); {use}")
+            f"(estimated from {source}); {use}")
 
 
 def summary_dict(report: JobReport, cfg: Config) -> dict:
