@@ -29,6 +29,7 @@ frames between keyframes along the keyframe segment.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -285,7 +286,8 @@ class Odometry:
         self._clock_updated_at = self.clock.n_added
         self._clock_flows_at = self.clock.n_flows_added
         est = self.clock.update(raw)
-        if est.observable and est.zero_rejected and self.clock_mode is WheelClockMode.ESTIMATE:
+        if (est.observable and est.zero_rejected and math.isfinite(est.offset_s)
+                and self.clock_mode is WheelClockMode.ESTIMATE):
             self.wheel_offset_s = est.offset_s
             if self.offset_applied_since is None:
                 self.offset_applied_since = t
