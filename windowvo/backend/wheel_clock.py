@@ -19,11 +19,12 @@ A path without turns (a straight road) does not show the offset: the estimate th
 The speed tells it too, where the turns do not (a robot that stops and starts on a straight line): the image
 moves by about ``gain * distance`` between two frames, the gain set by the scene's depth, so the front end's
 median frame-to-frame flow is fitted to the wheels' distance over the same frame interval read at ``t + dt``,
-with a gain per ``FLOW_BLOCK_S`` of frames that may drift linearly within it (a constant gain would take the
-depth's change during a speed ramp for a time shift: 2-4 ms on a drift of 20% in 10 s). Only speed changes show the offset (at a constant speed
-every ``dt`` fits), so this part counts only when the wheels' speed over the frames varies by
-``MIN_SPEED_VARIATION`` of its largest value (a stop or a start). Where both parts count, their residuals are
-added in units of each part's residual variance (one chi-square curve over ``dt``).
+with a gain per ``FLOW_BLOCK_S`` of frames that may drift linearly within it (a constant gain takes the depth's
+change during a speed ramp for a time shift: +2.4 ms on a drift of 20% in 10 s). Only speed changes show the
+offset (at a constant speed every ``dt`` fits), so this part counts only in blocks where the wheels' speed varies
+by ``MIN_SPEED_VARIATION`` of its largest value (a stop or a start). Where both parts count and their own
+estimates agree (a chi-square test at 99%), their residuals are added in units of each part's residual variance
+(one chi-square curve over ``dt``); where they disagree there is no estimate.
 
 Convention: ``t_wheels = t_camera + offset_s``: the wheel sample stamped ``t + offset_s`` describes the
 instant the camera stamped ``t``.
@@ -53,7 +54,8 @@ MAX_SIGMA_S = 0.004
 # of 1 degree of freedom at 99%. The curvature's sigma is local: it cannot see a second minimum near zero.
 CHI2_1DOF_99 = 6.635
 # The speed part: frame intervals remembered, how many an estimate needs, the span (s) of frames that share one
-# gain and its drift (the scene's depth changes slowly) and how much the wheels' per-frame distance must vary (share of its largest).
+# gain and its drift (the scene's depth changes slowly) and how much the wheels' per-frame distance must vary in
+# such a span (share of its largest).
 FLOW_WINDOW_FRAMES = 4000
 MIN_FLOW_FRAMES = 20
 FLOW_BLOCK_S = 2.0
@@ -130,11 +132,16 @@ class WheelClock:
         return self.estimate
 
 
+def _distance(wheels: WheelOdometry) -> np.ndarray:
+    """The wheels' distance driven up to each sample (m)."""
+    return np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(wheels.x), np.diff(wheels.y)))])
+
+
 def _residuals(t0: np.ndarray, t1: np.ndarray, vis: np.ndarray, wheels: WheelOdometry,
-               offsets: np.ndarray) -> np.ndarray:
-    """Residual sum of squares of the linear fit wheel heading change ~ a * vision + b * distance, per offset."""
+               offsets: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Residual sum of squares of the linear fit wheel heading change ~ a * vision + b * distance (``s``: the
+    wheels' distance at each sample), per offset."""
     ts, yaw = wheels.timestamps, wheels.yaw
-    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(wheels.x), np.diff(wheels.y)))])
     rss = np.empty(len(offsets))
     for i, dt in enumerate(offsets):
         dyaw = np.interp(t1 + dt, ts, yaw) - np.interp(t0 + dt, ts, yaw)
@@ -207,8 +214,8 @@ def _speed_chi2(flows: list[_Flow], wheels: WheelOdometry, offsets: np.ndarray, 
     return rss / max(sigma2, 1e-300)
 
 
-def _heading_rss(intervals: list[_Interval], wheels: WheelOdometry, offsets: np.ndarray,
-                 max_offset_s: float) -> tuple[np.ndarray | None, float, float, int]:
+def _heading_rss(intervals: list[_Interval], wheels: WheelOdometry, offsets: np.ndarray, max_offset_s: float,
+                 s: np.ndarray) -> tuple[np.ndarray | None, float, float, int]:
     """The heading part: its residual sum of squares per offset (None where it does not count: too few intervals
     or too little change of turn rate), its residual variance, the intervals' overlap and how many it used."""
     n = len(intervals)
@@ -223,7 +230,7 @@ def _heading_rss(intervals: list[_Interval], wheels: WheelOdometry, offsets: np.
     rate = vis / (t1 - t0)
     if len(vis) < MIN_INTERVALS or float(np.ptp(rate * np.median(t1 - t0))) < MIN_TURN_VARIATION_RAD:
         return None, 1.0, 1.0, len(vis)
-    rss = _residuals(t0, t1, vis, wheels, offsets)
+    rss = _residuals(t0, t1, vis, wheels, offsets, s)
     sigma2 = float(rss[int(np.argmin(rss))]) / max(len(vis) - 3, 1)
     return rss, sigma2, _overlap(t0, t1), len(vis)
 
@@ -257,11 +264,9 @@ def estimate_offset(intervals: list[_Interval], wheels: WheelOdometry, max_offse
     """The offset that best explains the wheels' heading changes by vision's, and their distance per frame by the
     image's motion where the speed changes (see the module docstring)."""
     offsets = np.arange(-max_offset_s, max_offset_s + GRID_STEP_S / 2, GRID_STEP_S)
-    rss_h, sigma2, overlap, n = _heading_rss(intervals, wheels, offsets, max_offset_s)
-    chi_v = None
-    if flows:
-        s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(wheels.x), np.diff(wheels.y)))])
-        chi_v = _speed_chi2(flows, wheels, offsets, max_offset_s, s)
+    s = _distance(wheels)
+    rss_h, sigma2, overlap, n = _heading_rss(intervals, wheels, offsets, max_offset_s, s)
+    chi_v = _speed_chi2(flows, wheels, offsets, max_offset_s, s) if flows else None
     if chi_v is None:
         return _minimum(rss_h, offsets, sigma2, overlap, n, False) if rss_h is not None else ClockEstimate(n_intervals=n)
     if rss_h is None:
