@@ -1,8 +1,9 @@
 """Front end: tracks -> undistorted observations, RANSAC outlier rejection, keyframes, gates.
 
 Per frame: track features (persistent ids), undistort them, reject outliers with an
-essential-matrix RANSAC against the last keyframe (rejected tracks end), measure parallax,
-decide whether this frame is a keyframe, and run the quality gates on keyframe candidates.
+essential-matrix RANSAC against the last keyframe (rejected tracks end), measure parallax (and the
+tracks' median motion since the last frame, ``flow_px``, for the wheel clock), decide whether this
+frame is a keyframe, and run the quality gates on keyframe candidates.
 
 Lenses: tracks are measured in the distorted image and handed on as the pixels an ideal
 pinhole camera with the same K would see. A ray far off the optical axis maps to huge

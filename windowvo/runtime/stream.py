@@ -12,8 +12,8 @@ One code path: the file pipeline (``runtime/pipeline.py``) drives this same obje
 frame's wheel samples just before the frame, so ``trajectory_online.txt`` is exactly what a robot
 calling :meth:`Odometry.process` in its loop would have had.
 
-The wheels' own clock may be ahead of or behind the camera's: the offset is estimated from the turns
-(``backend/wheel_clock.py``) and, once the data tell it from none, the wheels are read at camera time plus that
+The wheels' own clock may be ahead of or behind the camera's: the offset is estimated from the turns and the
+speed changes (``backend/wheel_clock.py``; each frame's image motion goes to it) and, once the data tell it from none, the wheels are read at camera time plus that
 offset (``backend.odometry.time_offset``; :meth:`Odometry.wheels_on_camera_clock`).
 
 The causal pose of a frame is the newest keyframe estimate as it was right after that keyframe
