@@ -224,6 +224,13 @@ class OdometryNoiseConfig(_Section):
     time_offset_ms: float = Field(0.0, ge=-1000.0, le=1000.0, description="the wheels' known time offset to the "
                                   "camera in ms (positive: the wheels stamp an instant later than the camera); only "
                                   "with time_offset: fixed")
+    time_offset_second_pass: bool = Field(True, description="with time_offset: estimate, a run of a recording "
+                                          "(python -m windowvo.run, the batch, the benchmark; not the streaming "
+                                          "Odometry API, which is causal) whose offset was applied part way is made "
+                                          "again from its first frame with the wheels read at its final estimate "
+                                          "(as time_offset: fixed): the keyframes before the estimate keep no wheel "
+                                          "step read at the wrong time. The first pass's files go to OUT/first_pass/; "
+                                          "it costs a second run only where an offset was found")
 
     @field_validator("time_offset", mode="before")
     @classmethod

@@ -1,24 +1,27 @@
 """Run a configured job end to end: load, process, write, evaluate, summarise.
 
 The command line (``windowvo.cli.run``) calls :func:`run_and_report`; the benchmark and the tests call
-:func:`run_job` to get the numbers (a :class:`JobReport`) without printing.
+:func:`run_job` to get the numbers (a :class:`JobReport`) without printing. A run whose wheel clock offset was
+estimated and applied part way is made again from its first frame with that offset (:func:`second_pass_config`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import Config, RerunMode, RunMode
+from ..config import Config, RerunMode, RunMode, WheelClockMode
 from ..errors import WindowVOError
 from ..io.sequence import Sequence
 from ..io.trajectory import Trajectory
 from . import stop
-from .outfolder import OutputLock, check_writable_names
+from .outfolder import FIRST_PASS_DIR, OutputLock, check_writable_names, keep_first_pass
 from .outputs import summary_dict, summary_lines, write_outputs, write_summary
 from .parallel import BackendWorker
 from .pipeline import Pipeline, RunResult
@@ -70,16 +73,79 @@ def run_job(cfg: Config, progress=None) -> JobReport:
         check_writable_names(cfg.output)
         # A summary.json that is not this run's must never sit beside this run's files (a failed run included).
         (cfg.output / "summary.json").unlink(missing_ok=True)
-        # Pipelined: spawn the back-end process first, so its start overlaps with loading the sequence.
-        worker = BackendWorker() if cfg.run_mode is RunMode.PIPELINED else None
-        try:
-            report = _run_job(cfg, progress, worker)
-        finally:
-            if worker is not None:
-                worker.close()
+        report = _run_once(cfg, progress)
+        second = second_pass_config(cfg, report.result)
+        if second is not None and stop.requested() is None:
+            report = _second_pass(cfg, second, report, progress)
         if stop.requested() is not None:  # a signal after the last frame: the run is still marked interrupted
             report.result.interrupted = True
         return report
+
+
+def _run_once(cfg: Config, progress) -> JobReport:
+    # Pipelined: spawn the back-end process first, so its start overlaps with loading the sequence.
+    worker = BackendWorker() if cfg.run_mode is RunMode.PIPELINED else None
+    try:
+        return _run_job(cfg, progress, worker)
+    finally:
+        if worker is not None:
+            worker.close()
+
+
+# The first pass's summary.json records the offset its second pass reads the wheels at (ms) under this key.
+SECOND_PASS_KEY = "second_pass_time_offset_ms"
+
+
+def second_pass_config(cfg: Config, result: RunResult) -> Config | None:
+    """The config of a second pass, or None when the run needs none: with ``backend.odometry.time_offset: estimate``
+    and ``time_offset_second_pass``, a finished run whose wheel clock offset was applied part way (its keyframes
+    before then hold wheel steps read at the camera's times) is made again with the wheels read at its final
+    estimate from the first frame on (``time_offset: fixed``)."""
+    o = cfg.backend.odometry
+    c = result.wheel_time_offset
+    if (o.time_offset is not WheelClockMode.ESTIMATE or not o.time_offset_second_pass or result.interrupted
+            or c is None or c.applied_s is None or not (c.observable and math.isfinite(c.offset_s))):
+        return None
+    return _with_fixed_offset(cfg, 1000.0 * c.offset_s)
+
+
+def _with_fixed_offset(cfg: Config, offset_ms: float) -> Config:
+    odometry = cfg.backend.odometry.model_copy(update={"time_offset": WheelClockMode.FIXED, "time_offset_ms": offset_ms})
+    return cfg.model_copy(update={"backend": cfg.backend.model_copy(update={"odometry": odometry})})
+
+
+def resume_config(cfg: Config) -> Config:
+    """The config a killed run in ``cfg.output`` is resumed with: a second pass's (its first pass finished, its
+    files and summary in ``OUT/first_pass/``) when the run took one, else ``cfg``."""
+    o = cfg.backend.odometry
+    if o.time_offset is not WheelClockMode.ESTIMATE or not o.time_offset_second_pass:
+        return cfg
+    try:
+        offset_ms = json.loads((cfg.output / FIRST_PASS_DIR / "summary.json").read_text()).get(SECOND_PASS_KEY)
+    except (OSError, ValueError):
+        return cfg
+    if not isinstance(offset_ms, (int, float)) or not math.isfinite(offset_ms):
+        return cfg
+    log.info("resuming the second pass (the wheels read at %+.1f ms; the first pass's files in %s/)", offset_ms,
+             FIRST_PASS_DIR)
+    return _with_fixed_offset(cfg, float(offset_ms))
+
+
+def _second_pass(cfg: Config, second: Config, first: JobReport, progress) -> JobReport:
+    """Keep the first pass's files (with its summary) in ``OUT/first_pass/`` and make the run again with
+    ``second``; the second pass's report, with the first pass's clock estimate."""
+    c = first.result.wheel_time_offset
+    assert c is not None and c.applied_s is not None
+    kept = keep_first_pass(cfg.output)
+    summary = summary_dict(first, cfg)
+    summary[SECOND_PASS_KEY] = 1000.0 * c.offset_s  # exact: a killed second pass is resumed with it
+    write_summary(summary, kept)
+    log.info("wheel clock: %+.1f ms against the camera's, applied from t=%.2f s; the run again from its first frame "
+             "with the wheels read at that offset (a second pass; the first pass's files are in %s)",
+             1000.0 * c.offset_s, c.applied_since_t if c.applied_since_t is not None else float("nan"), kept)
+    report = _run_once(second, progress)
+    report.result.first_pass_clock = c
+    return report
 
 
 def _log_plan(pipe: Pipeline, seq: Sequence) -> None:

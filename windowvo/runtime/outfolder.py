@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import shutil
 import time
 from pathlib import Path
 from typing import IO
@@ -25,6 +26,9 @@ LOCK_NAME = ".windowvo.lock"
 # Everything a run writes into its output folder.
 RUN_FILES = ("trajectory.txt", "trajectory_online.txt", "stats.csv", "summary.json", "config_resolved.yaml",
              "recording.rrd", "journal.jsonl")
+# A run made again with its wheel clock's offset (``backend.odometry.time_offset_second_pass``): the first pass's
+# files, in this folder inside the output folder.
+FIRST_PASS_DIR = "first_pass"
 
 
 class OutputBusyError(WindowVOError):
@@ -101,7 +105,8 @@ class OutputLock:
 def previous_run_files(out: Path) -> list[Path]:
     """The files of an earlier run in ``out`` (none when the folder is new or empty of them)."""
     out = Path(out)
-    return [out / name for name in RUN_FILES if (out / name).exists() or (out / name).is_symlink()]
+    files = [out / name for name in RUN_FILES if (out / name).exists() or (out / name).is_symlink()]
+    return files + ([out / FIRST_PASS_DIR] if (out / FIRST_PASS_DIR).is_dir() else [])
 
 
 def check_writable_names(out: Path) -> None:
@@ -137,4 +142,20 @@ def remove_previous(out: Path) -> int:
         if f.is_file() or f.is_symlink():
             f.unlink()
             n += 1
+        elif f.name == FIRST_PASS_DIR and f.is_dir():
+            shutil.rmtree(f)
+            n += 1
     return n
+
+
+def keep_first_pass(out: Path) -> Path:
+    """Move a finished first pass's files into ``out/first_pass/`` (an earlier one there is replaced); returns it."""
+    dest = Path(out) / FIRST_PASS_DIR
+    if dest.is_dir():
+        shutil.rmtree(dest)
+    dest.mkdir()
+    for name in RUN_FILES:
+        f = Path(out) / name
+        if f.exists() or f.is_symlink():
+            os.replace(f, dest / name)
+    return dest

@@ -17,6 +17,7 @@ from ..backend.ground import levelled_mount, normal_from_tilt_deg, tilt_signific
 from ..config import Config, save_config
 from ..io.trajectory import write_tum
 from ..types import FrameRecord
+from .outfolder import FIRST_PASS_DIR
 from .pipeline import ONLINE_HEADER, RunResult
 from .stage_timer import Stage, section
 
@@ -159,10 +160,27 @@ def _clock_dict(c) -> dict | None:
             "applied_since_s": round(c.applied_since_t, 3) if applied and c.applied_since_t is not None else None}
 
 
+def _first_pass_dict(r: RunResult) -> dict | None:
+    """A second pass's record of its first pass (``backend.odometry.time_offset_second_pass``)."""
+    c = r.first_pass_clock
+    if c is None:
+        return None
+    return {"offset_ms": 1000.0 * c.offset_s, "sigma_ms": round(1000.0 * c.sigma_s, 2),
+            "applied_since_s": None if c.applied_since_t is None else round(c.applied_since_t, 3),
+            "folder": FIRST_PASS_DIR}
+
+
 def _clock_line(r: RunResult) -> str | None:
     c = r.wheel_time_offset
     if c is None:
         return None
+    f = r.first_pass_clock
+    if f is not None:
+        since = "" if f.applied_since_t is None else f" from t={f.applied_since_t:.2f} s"
+        done = ("interrupted: the first pass's complete results are" if r.interrupted else "the first pass's files")
+        return (f"wheel clock: {1000.0 * f.offset_s:+.1f} ± {1000.0 * f.sigma_s:.1f} ms against the camera's, applied"
+                f"{since} in a first pass; this is a second pass with the wheels read at that offset from the first "
+                f"frame ({done} in {FIRST_PASS_DIR}/)")
     if c.applied_s is None:
         use = "not applied" if c.zero_rejected or not c.observable else "not applied (not told from a zero offset)"
     else:
@@ -203,6 +221,7 @@ def summary_dict(report: JobReport, cfg: Config) -> dict:
             "yaw_bias_per_m": round(cal.yaw_bias_per_m, 6), "yaw_bias_sigma": round(cal.yaw_bias_sigma, 6),
             "yaw_scale": round(cal.yaw_scale, 5), "yaw_scale_sigma": round(cal.yaw_scale_sigma, 5)},
         "wheel_time_offset": _clock_dict(r.wheel_time_offset),
+        "wheel_clock_first_pass": _first_pass_dict(r),
         "odometry_synthetic": bool(report.sequence.odometry is not None and report.sequence.odometry.synthetic),
         "interrupted": r.interrupted,
         **floor_summary(r.records, report.sequence.camera.T_base_cam),

@@ -64,6 +64,8 @@ class RunResult:
     last_frame_index: int = -1
     trajectory_online: Trajectory | None = None  # causal pose per frame, as a robot had it at that time
     wheel_time_offset: ClockEstimate | None = None  # the wheels' clock against the camera's, and what was applied
+    # A second pass (backend.odometry.time_offset_second_pass): the first pass's clock estimate (None: one pass)
+    first_pass_clock: ClockEstimate | None = None
 
     @property
     def fps(self) -> float:

@@ -47,7 +47,7 @@ from ..io.sequence import Sequence, subsequence
 from ..io.trajectory import Trajectory
 from ..types import FrameRecord, ScaleSource
 from . import stop
-from .job import JobReport, evaluate_report, load_sequence
+from .job import JobReport, evaluate_report, load_sequence, resume_config
 from .journal import (
     JOURNAL_NAME,
     JournalContents,
@@ -166,7 +166,10 @@ def run_continuation(cfg: Config, sub: Sequence, seam_frame: int) -> tuple[Pipel
 
 
 def resume(cfg: Config) -> RunResult:
-    """Continue the killed run in ``cfg.output`` to the end of its sequence; write the outputs, print the summary."""
+    """Continue the killed run in ``cfg.output`` to the end of its sequence; write the outputs, print the summary.
+    A run killed in its second pass (``backend.odometry.time_offset_second_pass``) continues that pass; one killed
+    in its first pass continues the first and takes no second."""
+    cfg = resume_config(cfg)
     out = cfg.output
     with stop.guarded(stop.Phase.RAISE), OutputLock.of(out):
         j = read_journal(out / JOURNAL_NAME)

@@ -1,0 +1,101 @@
+"""The wheel clock's second pass (``backend.odometry.time_offset_second_pass``): a recorded run whose offset was
+estimated and applied part way is made again from its first frame with the wheels read at the final estimate.
+
+Unit tests of when it is taken, of the first pass's files kept beside it, and of the config a killed second pass
+is resumed with; the end-to-end case (the scale suite's stop-and-go room with its wheels 30 ms late) is in
+``tests/test_wheel_clock_speed.py::test_a_late_clock_on_a_stop_and_go_drive`` (it shares that render).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import pytest
+
+from windowvo.backend.wheel_clock import ClockEstimate
+from windowvo.config import WheelClockMode, config_from_dict
+from windowvo.runtime.job import SECOND_PASS_KEY, resume_config, second_pass_config
+from windowvo.runtime.outfolder import FIRST_PASS_DIR, keep_first_pass, move_aside, previous_run_files, remove_previous
+
+APPLIED = ClockEstimate(0.0309, 0.0029, True, 26, True, applied_s=0.0316, applied_since_t=9.2, from_speed=True)
+
+
+def _cfg(tmp_path, **odometry):
+    return config_from_dict({"sequence": str(tmp_path / "seq"), "output": str(tmp_path / "out"),
+                             "backend": {"odometry": odometry}})
+
+
+def _result(clock=APPLIED, interrupted=False):
+    return SimpleNamespace(wheel_time_offset=clock, interrupted=interrupted)
+
+
+def test_a_run_whose_offset_was_applied_part_way_is_made_again_at_its_final_estimate(tmp_path):
+    cfg = _cfg(tmp_path)
+    second = second_pass_config(cfg, _result())
+    assert second is not None
+    o = second.backend.odometry
+    assert o.time_offset is WheelClockMode.FIXED and o.time_offset_ms == pytest.approx(30.9)  # the estimate, not
+    # the offset applied last (31.6 ms): the final estimate holds every interval of the run
+    assert cfg.backend.odometry.time_offset is WheelClockMode.ESTIMATE  # the user's config is not changed
+    assert second.output == cfg.output and second.sequence == cfg.sequence
+
+
+@pytest.mark.parametrize("case", ["not applied", "not observable", "nan", "interrupted", "off", "fixed",
+                                  "disabled", "no wheels"])
+def test_no_second_pass(tmp_path, case):
+    odometry: dict = {}
+    clock: ClockEstimate | None = APPLIED
+    interrupted = False
+    if case == "not applied":
+        clock = ClockEstimate(0.0309, 0.0029, True, 26, False)
+    elif case == "not observable":
+        clock = ClockEstimate(0.0, math.nan, False, 4, False, applied_s=0.01, applied_since_t=3.0)
+    elif case == "nan":
+        clock = ClockEstimate(math.nan, math.nan, True, 26, True, applied_s=0.01, applied_since_t=3.0)
+    elif case == "interrupted":
+        interrupted = True
+    elif case == "off":
+        odometry = {"time_offset": "off"}
+    elif case == "fixed":
+        odometry = {"time_offset": "fixed", "time_offset_ms": 30.0}
+    elif case == "disabled":
+        odometry = {"time_offset_second_pass": False}
+    else:
+        clock = None
+    assert second_pass_config(_cfg(tmp_path, **odometry), _result(clock, interrupted)) is None
+
+
+def test_the_first_pass_files_are_kept_and_count_as_an_earlier_run(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ("trajectory.txt", "stats.csv", "journal.jsonl"):
+        (out / name).write_text(name)
+    (out / ".windowvo.lock").write_text("1")
+    (out / FIRST_PASS_DIR).mkdir()
+    (out / FIRST_PASS_DIR / "stale.txt").write_text("an earlier first pass")
+    kept = keep_first_pass(out)
+    assert sorted(p.name for p in kept.iterdir()) == ["journal.jsonl", "stats.csv", "trajectory.txt"]
+    assert (kept / "stats.csv").read_text() == "stats.csv"
+    assert (out / ".windowvo.lock").exists() and not (out / "stats.csv").exists()  # the lock stays
+    assert previous_run_files(out) == [out / FIRST_PASS_DIR]  # an earlier run: the command line asks for --force
+    aside = move_aside(out)
+    assert aside is not None and (aside / FIRST_PASS_DIR / "stats.csv").exists()
+    keep_first_pass(out)
+    assert remove_previous(out) == 1 and not (out / FIRST_PASS_DIR).exists()
+
+
+def test_a_killed_second_pass_is_resumed_as_the_second_pass(tmp_path):
+    cfg = _cfg(tmp_path)
+    assert resume_config(cfg) is cfg  # no first pass: the run resumed as it was
+    first = cfg.output / FIRST_PASS_DIR
+    first.mkdir(parents=True)
+    (first / "summary.json").write_text(json.dumps({"interrupted": False, SECOND_PASS_KEY: 30.922724063946394}))
+    resumed = resume_config(cfg)
+    assert resumed.backend.odometry.time_offset is WheelClockMode.FIXED
+    assert resumed.backend.odometry.time_offset_ms == 30.922724063946394  # exactly: the replay is the killed run's
+    off = _cfg(tmp_path, time_offset="off")
+    assert resume_config(off) is off  # a run that never takes a second pass
+    (first / "summary.json").write_text("{not json")
+    assert resume_config(cfg) is cfg
