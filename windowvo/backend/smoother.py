@@ -257,6 +257,8 @@ class SlidingWindowBackend:
             step_yaw = float(np.arctan2(odom.T_prev_cur[1, 0], odom.T_prev_cur[0, 0]))
             if T_pnp is not None and fac.agrees_with_wheel_step(self.cfg, T_wheels, T_pnp, odom.distance_m, step_yaw):
                 return with_tilt_of(T_wheels, T_pnp)
+            if T_pnp is not None and self.slip.in_slip:  # the wheels slipped at the last keyframe: vision's pose
+                return T_pnp
             return T_wheels
         if T_pnp is not None:
             return T_pnp

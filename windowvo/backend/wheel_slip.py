@@ -29,6 +29,11 @@ be the wrong one (a rocking base's feature simulation: steps 7-12 sigma off at k
 switched off, took a run from 0.011 to 3.4 m). Elsewhere, where vision is weak, the solution follows the wheels,
 their residuals stay small and nothing is switched: the wheels carry the run, as before.
 
+While the last judged step is switched off (``in_slip``), the next keyframe's initial guess is PnP's pose where
+PnP and the wheels disagree (``SlidingWindowBackend._initial_guess``; elsewhere a PnP pose the wheel factor would
+reject is not followed): a slip lasts longer than one keyframe, and a solve started from the slipping wheels' pose
+ended a few millimetres long.
+
 Reported per keyframe in ``stats.csv`` (``wheel_step_sigmas``, ``wheel_slip``) and over the run in the summary
 (``wheel_slip``: the steps switched off and the frames they span).
 """
@@ -141,6 +146,11 @@ class WheelSlipSwitch:
                      p.k, frame_index, z)
         self._in_slip = self.last.switched
         return (index, replace) if self.last.switched else None
+
+    @property
+    def in_slip(self) -> bool:
+        """The last judged wheel step was switched off (the wheels are slipping, as far as the window knows)."""
+        return self._in_slip
 
     @property
     def switched_now(self) -> bool:
