@@ -99,3 +99,33 @@ def test_a_killed_second_pass_is_resumed_as_the_second_pass(tmp_path):
     assert resume_config(off) is off  # a run that never takes a second pass
     (first / "summary.json").write_text("{not json")
     assert resume_config(cfg) is cfg
+
+
+@pytest.mark.parametrize("how", ["fails", "stopped"])
+def test_a_second_pass_that_fails_or_is_stopped_gives_the_first_pass_back(tmp_path, monkeypatch, how):
+    """The first pass is a finished run: a second pass that raises, or is stopped part way (its files partial),
+    must not cost it. Its files come back to OUT and its report is the run's."""
+    from windowvo.runtime import job
+
+    cfg = _cfg(tmp_path)
+    out = cfg.output
+    out.mkdir(parents=True)
+    for name in ("trajectory.txt", "stats.csv"):
+        (out / name).write_text(f"first pass {name}")
+    first = SimpleNamespace(result=SimpleNamespace(wheel_time_offset=APPLIED, interrupted=False))
+
+    def second_pass(second_cfg, progress):
+        assert second_cfg.backend.odometry.time_offset is WheelClockMode.FIXED
+        assert (out / FIRST_PASS_DIR / "trajectory.txt").read_text() == "first pass trajectory.txt"
+        (out / "trajectory.txt").write_text("a partial second pass")
+        if how == "fails":
+            raise RuntimeError("the back end failed")
+        return SimpleNamespace(result=SimpleNamespace(interrupted=True))
+
+    monkeypatch.setattr(job, "_run_once", second_pass)
+    monkeypatch.setattr(job, "summary_dict", lambda report, c: {"interrupted": False})
+    report = job._second_pass(cfg, second_pass_config(cfg, first.result), first, None)
+    assert report is first
+    assert (out / "trajectory.txt").read_text() == "first pass trajectory.txt"
+    assert (out / "stats.csv").read_text() == "first pass stats.csv"
+    assert not (out / FIRST_PASS_DIR).exists()

@@ -229,8 +229,9 @@ class OdometryNoiseConfig(_Section):
                                           "Odometry API, which is causal) whose offset was applied part way is made "
                                           "again from its first frame with the wheels read at its final estimate "
                                           "(as time_offset: fixed): the keyframes before the estimate keep no wheel "
-                                          "step read at the wrong time. The first pass's files go to OUT/first_pass/; "
-                                          "it costs a second run only where an offset was found")
+                                          "step read at the wrong time. The first pass's files go to OUT/first_pass/ "
+                                          "(back to OUT if the second pass fails or is stopped); it costs a second "
+                                          "run only where an offset was found")
 
     @field_validator("time_offset", mode="before")
     @classmethod

@@ -21,7 +21,7 @@ from ..errors import WindowVOError
 from ..io.sequence import Sequence
 from ..io.trajectory import Trajectory
 from . import stop
-from .outfolder import FIRST_PASS_DIR, OutputLock, check_writable_names, keep_first_pass
+from .outfolder import FIRST_PASS_DIR, OutputLock, check_writable_names, keep_first_pass, restore_first_pass
 from .outputs import summary_dict, summary_lines, write_outputs, write_summary
 from .parallel import BackendWorker
 from .pipeline import Pipeline, RunResult
@@ -133,7 +133,8 @@ def resume_config(cfg: Config) -> Config:
 
 def _second_pass(cfg: Config, second: Config, first: JobReport, progress) -> JobReport:
     """Keep the first pass's files (with its summary) in ``OUT/first_pass/`` and make the run again with
-    ``second``; the second pass's report, with the first pass's clock estimate."""
+    ``second``; the second pass's report, with the first pass's clock estimate. A second pass that fails or is
+    stopped (Ctrl-C, SIGTERM) gives the first pass back: its files return to ``OUT`` and its report is returned."""
     c = first.result.wheel_time_offset
     assert c is not None and c.applied_s is not None
     kept = keep_first_pass(cfg.output)
@@ -143,7 +144,16 @@ def _second_pass(cfg: Config, second: Config, first: JobReport, progress) -> Job
     log.info("wheel clock: %+.1f ms against the camera's, applied from t=%.2f s; the run again from its first frame "
              "with the wheels read at that offset (a second pass; the first pass's files are in %s)",
              1000.0 * c.offset_s, c.applied_since_t if c.applied_since_t is not None else float("nan"), kept)
-    report = _run_once(second, progress)
+    try:
+        report = _run_once(second, progress)
+    except (Exception, stop.Interrupted) as err:
+        restore_first_pass(cfg.output)
+        log.error("the second pass failed (%s); the first pass's results are in %s", err, cfg.output)
+        return first
+    if report.result.interrupted or stop.requested() is not None:
+        restore_first_pass(cfg.output)
+        log.warning("the second pass was stopped; the first pass's results are in %s", cfg.output)
+        return first
     report.result.first_pass_clock = c
     return report
 

@@ -148,6 +148,16 @@ def remove_previous(out: Path) -> int:
     return n
 
 
+def restore_first_pass(out: Path) -> None:
+    """Put a first pass's files back in ``out`` (in place of a second pass's) and remove ``out/first_pass/``."""
+    src = Path(out) / FIRST_PASS_DIR
+    for name in RUN_FILES:
+        (Path(out) / name).unlink(missing_ok=True)
+        if (src / name).exists():
+            os.replace(src / name, Path(out) / name)
+    shutil.rmtree(src, ignore_errors=True)
+
+
 def keep_first_pass(out: Path) -> Path:
     """Move a finished first pass's files into ``out/first_pass/`` (an earlier one there is replaced); returns it."""
     dest = Path(out) / FIRST_PASS_DIR
