@@ -214,3 +214,53 @@ def test_a_circle_driven_stop_and_go_does_not_show_the_offset_in_its_turns():
     rss, *_ = _heading_rss(list(clock.intervals), wheels, offsets, 0.1, _distance(wheels))
     assert rss is None
     assert not estimate_offset(list(clock.intervals), wheels).observable
+
+
+@pytest.mark.slow
+def test_a_second_pass_killed_is_resumed_as_the_second_pass(tmp_path):
+    """SIGKILL during the second pass (the stop-and-go room, wheels 30 ms late) leaves the first pass whole in
+    ``first_pass/``; ``--resume`` continues the second pass (wheels read at the first pass's exact estimate from the
+    first frame) and ends with the uninterrupted run's trajectory, its replay the killed run's to the last bit."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from test_faults import ENV, TIMEOUT, _journal_frames, cli
+
+    from windowvo.runtime.outfolder import FIRST_PASS_DIR
+    from windowvo.synth.generate import shift_wheel_clock
+    from windowvo.tools.scale_suite import ensure_rendered, rendered_cases
+
+    seq = ensure_rendered(next(c for c in rendered_cases() if c.name == STOPGO), tmp_path)
+    late = shift_wheel_clock(seq, tmp_path / "late", STOPGO_LATE_S)
+
+    def config(out):
+        path = tmp_path / f"{out.name}.yaml"
+        path.write_text(f"sequence: {late}\noutput: {out}\nviz:\n  rerun: 'off'\nrun_mode: sequential\n")
+        return str(path)
+
+    ref = tmp_path / "ref"
+    assert cli(config(ref)).returncode == 0
+    assert (ref / FIRST_PASS_DIR / "summary.json").is_file()  # the uninterrupted run took a second pass
+    out = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-m", "windowvo.run", config(out), "--no-progress", "-q"], env=ENV,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    t0 = time.monotonic()
+    while proc.poll() is None and time.monotonic() - t0 < TIMEOUT and not (
+            (out / FIRST_PASS_DIR / "summary.json").is_file() and _journal_frames(out) >= 120):
+        time.sleep(0.002)
+    assert proc.poll() is None, "the run ended before its second pass could be killed"
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=TIMEOUT)
+    assert not (out / "summary.json").exists() and (out / FIRST_PASS_DIR / "trajectory.txt").is_file()
+    r = cli(config(out), "--resume")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["resumed"] is True and summary["replay_max_difference_m"] == 0.0, summary
+    assert summary["wheel_time_offset"]["applied_since_s"] == 0.0, summary["wheel_time_offset"]
+    traj, want = (np.loadtxt(d / "trajectory.txt", comments="#") for d in (out, ref))
+    # to the file's last digit (1 um; the continuation is placed through the journal's pose of its seam frame)
+    np.testing.assert_allclose(traj[:, 1:4], want[:, 1:4], rtol=0, atol=2e-6)
