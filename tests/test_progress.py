@@ -30,3 +30,14 @@ def test_unknown_total_and_disabled():
     for n in range(1, 101):
         q.update(n)
     assert quiet.getvalue() == ""
+
+
+def test_a_second_pass_starts_the_lines_over():
+    """The wheel clock's second pass counts the frames from the first again: its lines are printed too."""
+    out = io.StringIO()
+    p = Progress(100, "frames", stream=out)
+    for _ in range(2):
+        for n in range(1, 101):
+            p.update(n)
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 20 and lines[10] == "windowvo: frames 10/100 (10%)", lines

@@ -2,7 +2,8 @@
 
 On a terminal a ``tqdm`` bar on stderr; elsewhere (CI, a log file, a pipe) one plain line on stderr at every
 tenth of the way (``windowvo: frames 120/501 (24%), 21 keyframes``), or every ``LINE_EVERY`` steps when the
-total is unknown. ``progress: false`` in the config turns both off.
+total is unknown; a count that goes back (a run made again from its first frame: the wheel clock's second pass)
+starts the lines over. ``progress: false`` in the config turns both off.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ class Progress:
         self.enabled = enabled
         self._bar: Any = None
         self._next_line = self._step()
+        self._last = 0
         if enabled and self.stream.isatty():
             from tqdm import tqdm
 
@@ -42,6 +44,9 @@ class Progress:
             if n % 10 == 0 or n == self.total:
                 self._bar.refresh()
             return
+        if n < self._last:  # counted from the start again
+            self._next_line = self._step()
+        self._last = n
         if n < self._next_line:
             return
         while self._next_line <= n:
