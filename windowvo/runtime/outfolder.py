@@ -6,6 +6,9 @@
 - :func:`previous_run_files`: the files an earlier run left in the folder; :func:`move_aside` puts them into
   ``OUT/previous-<timestamp>/`` (``--force``), :func:`remove_previous` deletes them (the embedded default job
   replaces its own previous run).
+- :func:`keep_first_pass` / :func:`restore_first_pass`: a run made again with its wheel clock's offset keeps its first
+  pass in ``OUT/first_pass/`` (an earlier run's files too, for the functions above), and puts it back when the second
+  pass fails or is stopped.
 
 Light on imports: the command line uses it before the pipeline is loaded.
 """
