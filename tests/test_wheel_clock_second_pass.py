@@ -129,3 +129,44 @@ def test_a_second_pass_that_fails_or_is_stopped_gives_the_first_pass_back(tmp_pa
     assert (out / "trajectory.txt").read_text() == "first pass trajectory.txt"
     assert (out / "stats.csv").read_text() == "first pass stats.csv"
     assert not (out / FIRST_PASS_DIR).exists()
+
+
+@pytest.mark.parametrize("where", ["moving", "summary"])
+def test_a_first_pass_that_cannot_be_kept_aside_stays_the_run(tmp_path, monkeypatch, where):
+    """A full disk while the first pass's files move to ``first_pass/`` (part way) or while its summary is written
+    there: no second pass, every first-pass file back in OUT, the first pass's report returned, no traceback."""
+    import os
+
+    from windowvo.runtime import job, outfolder
+
+    cfg = _cfg(tmp_path)
+    out = cfg.output
+    out.mkdir(parents=True)
+    for name in ("trajectory.txt", "stats.csv", "journal.jsonl"):
+        (out / name).write_text(f"first pass {name}")
+    first = SimpleNamespace(result=SimpleNamespace(wheel_time_offset=APPLIED, interrupted=False))
+    full = OSError(28, "No space left on device")
+    if where == "moving":
+        real = os.replace
+        moved = []
+
+        def replace_then_full(a, b):
+            if len(moved) == 1:
+                raise full
+            moved.append(a)
+            real(a, b)
+
+        monkeypatch.setattr(outfolder.os, "replace", replace_then_full)
+        monkeypatch.setattr(job, "restore_first_pass", lambda o, drop_others=True: (
+            monkeypatch.setattr(outfolder.os, "replace", real), outfolder.restore_first_pass(o, drop_others)))
+    else:
+        def no_space(summary, folder):
+            raise full
+
+        monkeypatch.setattr(job, "write_summary", no_space)
+    monkeypatch.setattr(job, "summary_dict", lambda report, c: {})
+    monkeypatch.setattr(job, "_run_once", lambda *a: pytest.fail("no second pass may run"))
+    assert job._second_pass(cfg, second_pass_config(cfg, first.result), first, None) is first
+    for name in ("trajectory.txt", "stats.csv", "journal.jsonl"):
+        assert (out / name).read_text() == f"first pass {name}"
+    assert not (out / FIRST_PASS_DIR).exists()

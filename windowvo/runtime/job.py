@@ -137,10 +137,16 @@ def _second_pass(cfg: Config, second: Config, first: JobReport, progress) -> Job
     stopped (Ctrl-C, SIGTERM) gives the first pass back: its files return to ``OUT`` and its report is returned."""
     c = first.result.wheel_time_offset
     assert c is not None and c.applied_s is not None
-    kept = keep_first_pass(cfg.output)
-    summary = summary_dict(first, cfg)
-    summary[SECOND_PASS_KEY] = 1000.0 * c.offset_s  # exact: a killed second pass is resumed with it
-    write_summary(summary, kept)
+    try:
+        kept = keep_first_pass(cfg.output)
+        summary = summary_dict(first, cfg)
+        summary[SECOND_PASS_KEY] = 1000.0 * c.offset_s  # exact: a killed second pass is resumed with it
+        write_summary(summary, kept)
+    except (OSError, WindowVOError) as err:  # e.g. a full disk: no second pass, the first pass stays the run
+        restore_first_pass(cfg.output, drop_others=False)
+        log.error("no second pass: the first pass's files could not be kept aside (%s); they are in %s", err,
+                  cfg.output)
+        return first
     log.info("wheel clock: %+.1f ms against the camera's, applied from t=%.2f s; the run again from its first frame "
              "with the wheels read at that offset (a second pass; the first pass's files are in %s)",
              1000.0 * c.offset_s, c.applied_since_t if c.applied_since_t is not None else float("nan"), kept)

@@ -151,13 +151,16 @@ def remove_previous(out: Path) -> int:
     return n
 
 
-def restore_first_pass(out: Path) -> None:
-    """Put a first pass's files back in ``out`` (in place of a second pass's) and remove ``out/first_pass/``."""
+def restore_first_pass(out: Path, drop_others: bool = True) -> None:
+    """Put a first pass's files back in ``out`` and remove ``out/first_pass/``. ``drop_others``: a second pass's files
+    of the names the first pass did not write go too (after a second pass; not when keeping the first pass failed
+    part way, where the files still in ``out`` are the first pass's own)."""
     src = Path(out) / FIRST_PASS_DIR
     for name in RUN_FILES:
-        (Path(out) / name).unlink(missing_ok=True)
         if (src / name).exists():
             os.replace(src / name, Path(out) / name)
+        elif drop_others:
+            (Path(out) / name).unlink(missing_ok=True)
     shutil.rmtree(src, ignore_errors=True)
 
 
