@@ -187,6 +187,24 @@ def test_landmark_budgets_follow_budget_keyframes(budget_keyframes, expected):
     assert vision._budgets(10) == expected
 
 
+@pytest.mark.parametrize("minimum, expected", [(0, 10 - 12), (4, 4 - 1), (2, 2 - 1), (1, 0)])
+def test_new_landmarks_are_admitted_while_few_are_in_view(minimum, expected):
+    """``backend.min_landmarks_in_view``: a budget full of landmarks out of view (tracks that ended) still admits
+    new ones up to that many seen by the previous keyframe (floor landmarks have their own budget)."""
+    from windowvo.backend.landmarks import LandmarkManager, LandmarkState
+    from windowvo.camera import CameraModel
+
+    cam = CameraModel(width=640, height=480, fx=340.0, fy=340.0, cx=320.0, cy=240.0)
+    lm = LandmarkManager(cam, BackendConfig(max_landmarks=10, min_landmarks_in_view=minimum))
+    # Twelve others in the window (two over the budget), one of them seen by keyframe 9 (the previous one); a
+    # floor landmark in view too, which does not count for the others.
+    for tid, last_kf in enumerate([3, 4, 5, 6, 7, 8, 3, 4, 5, 6, 7, 9]):
+        lm.landmarks[tid] = LandmarkState(key=tid, last_kf=last_kf, on_ground=False)
+    lm.landmarks[12] = LandmarkState(key=12, last_kf=9, on_ground=True)
+    assert lm.budgets(5, 0, 9) == (expected, 5 - 1)
+    assert lm.budgets(5, 0) == (10 - 12, 5 - 1)  # without in_view_since: the budget alone
+
+
 def test_factor_bookkeeping_knows_the_ground_factor_and_forgets_a_dropped_one():
     """Each landmark remembers its factors' smoother indices (removed with it as an outlier) and which one
     is its native ground factor (re-tied when the mount calibration switches); a dropped factor is

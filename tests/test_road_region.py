@@ -250,6 +250,17 @@ def test_the_pooled_pitch_is_the_searches_median_once_it_stands_out_of_their_spr
     assert pooled_pitch([0.9, 1.0, 1.1, 1.0], 3.0) == 0.0  # too few searches yet
 
 
+def test_the_pooled_pitch_claims_no_better_than_the_searches_shared_error():
+    """Searches that agree closely on half a degree (a spread of 0.02 deg, a median's standard error of 0.01) may
+    share a bias that their spread does not show: with ``systematic_deg`` 0.2 their median must stand 3 x 0.2 deg
+    from the set-up's; a degree does."""
+    half = [0.48, 0.5, 0.52, 0.49, 0.51, 0.5, 0.5]
+    assert pooled_pitch(half, 3.0) == pytest.approx(0.5)
+    assert pooled_pitch(half, 3.0, 0.2) == 0.0
+    assert pooled_pitch([p + 0.5 for p in half], 3.0, 0.2) == pytest.approx(1.0)
+    assert pooled_pitch([-p - 0.5 for p in half], 3.0, 0.2) == pytest.approx(-1.0)
+
+
 def test_the_cue_measures_on_the_pooled_pitch_of_its_searches():
     """The set-up's camera pitched 1 deg off, ten consecutive steps, a pool of six searches, then a search at every
     second step (``pitch_every``): the pitch is searched at every step until the pool is full, then at every second;

@@ -312,6 +312,14 @@ class RoadRegionConfig(_Section):
     pitch_sigmas: float = Field(3.0, ge=0, description="with pitch_window above 1, the pooled pitch (the median) is "
                                 "used once it lies this many standard errors (from the searches' spread) from the "
                                 "assumed one, with 5 searches at least; until then the assumed pitch")
+    pitch_systematic_deg: float = Field(0.0, ge=0, le=5, description="the error every pitch search shares "
+                                        "(degrees): the floor's texture, the images' smoothing, a lane line at the "
+                                        "region's side bias the searches alike, which their spread does not show; the "
+                                        "pooled pitch's standard error in pitch_sigmas' test adds it, so that no "
+                                        "number of searches claims the pitch better than this (0: their spread alone). "
+                                        "0.2 was measured: the scale suite's fused streets 0.80x and floor-only "
+                                        "streets 0.78x, KITTI the same, but held-out fused streets 1.07-1.13x "
+                                        "(docs/scale_suite.md)")
     pitch_every: int = Field(1, ge=1, description="with pitch_window above 1, once pitch_window searches are pooled the "
                              "pitch is searched at every this many steps only (the search costs about four times the "
                              "length's alone; until the pool is full, at every step); the steps between are measured "
@@ -504,6 +512,13 @@ class BackendConfig(_Section):
         "(none: window_keyframes; 1: only landmarks the previous keyframe still saw, so landmarks whose tracks ended "
         "do not block new ones); auto (default): 1 without wheels, where vision carries the motion and more "
         "landmarks help, none with wheels, where more landmarks let Huber's outliers add up (docs/scale_suite.md)")
+    min_landmarks_in_view: int = Field(0, ge=0, le=5000, description="new landmarks are admitted beyond the "
+                                       "landmark budget while fewer than this many of the window's landmarks (off "
+                                       "the floor) were seen by the previous keyframe: on a fast street, tracks end "
+                                       "within a few keyframes and, with wheels (budget_keyframes auto), the budget "
+                                       "fills with landmarks out of view, leaving keyframes with no projection "
+                                       "factors for a window's length (0: the budget alone; 80 measured, "
+                                       "docs/scale_suite.md)")
     landmark_model: LandmarkModel = Field(LandmarkModel.EXPLICIT, description="landmarks off the floor: explicit (a "
                                           "point state and robust projection factors each) or smart (GTSAM smart "
                                           "projection factors, no point state; Gaussian pixel noise with the "

@@ -176,6 +176,7 @@ class LandmarkFactors:
         every landmark the smoother holds during an update; with blocks, those waiting for their block
         to leave do not take new ones' places. A monocular run still waiting for the floor
         (``FloorModel.waiting_for_floor``) keeps the floor's budget for tracks below the horizon, so the
-        floor, once in view, is in the window."""
+        floor, once in view, is in the window. With ``min_landmarks_in_view``, the others' room is at least what
+        brings the landmarks keyframe k-1 saw up to that many (a budget held by ended tracks still admits new ones)."""
         lag = self.cfg.budget_lag(self.floor.use_odometry)
-        return self.lm.budgets(self.cfg.ground.max_landmarks if self.floor.use_ground else 0, k - lag)
+        return self.lm.budgets(self.cfg.ground.max_landmarks if self.floor.use_ground else 0, k - lag, k - 1)

@@ -191,12 +191,18 @@ class LandmarkManager:
         candidates.sort(key=lambda t: -len(self.obs[t]))
         return seen, candidates
 
-    def budgets(self, max_floor: int, seen_since: int = 0) -> tuple[int, int]:
+    def budgets(self, max_floor: int, seen_since: int = 0, in_view_since: int | None = None) -> tuple[int, int]:
         """Room left for new landmarks: (others, floor landmarks). Only landmarks seen by keyframe
-        ``seen_since`` or later count (those waiting for their block's marginalisation do not)."""
+        ``seen_since`` or later count (those waiting for their block's marginalisation do not). With
+        ``in_view_since`` and ``min_landmarks_in_view``: the others' room is at least what brings the landmarks
+        seen by keyframe ``in_view_since`` or later (those still in view) up to that minimum."""
         live = [lm for lm in self.landmarks.values() if lm.last_kf >= seen_since]
         n_floor = sum(1 for lm in live if lm.on_ground)
-        return self.cfg.max_landmarks - (len(live) - n_floor), max_floor - n_floor
+        room = self.cfg.max_landmarks - (len(live) - n_floor)
+        if in_view_since is not None and self.cfg.min_landmarks_in_view > 0:
+            in_view = sum(1 for lm in self.landmarks.values() if lm.last_kf >= in_view_since and not lm.on_ground)
+            room = max(room, self.cfg.min_landmarks_in_view - in_view)
+        return room, max_floor - n_floor
 
     # ------------------------------------------------------------------ triangulation
     @staticmethod

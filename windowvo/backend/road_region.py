@@ -487,17 +487,21 @@ def range_factor(key0: int, key1: int, base_m: float, sigma_m: float, robust_kin
 MIN_PITCH_SEARCHES = 5  # the pooled pitch is tested only once this many searches found one
 
 
-def pooled_pitch(pitches: list[float], sigmas: float) -> float:
+def pooled_pitch(pitches: list[float], sigmas: float, systematic_deg: float = 0.0) -> float:
     """The floor's pitch against the assumed one that the steps' searches tell together: their median, when it lies
-    ``sigmas`` standard errors from 0 (the median's, 1.2533 x 1.4826 x MAD / sqrt(n), from the searches' own
-    spread) with at least MIN_PITCH_SEARCHES of them; else 0, the assumed floor (one search's pitch is loose along
-    its ridge with the length: a camera at its set-up's pitch keeps the set-up's)."""
+    ``sigmas`` standard errors from 0 with at least MIN_PITCH_SEARCHES of them; else 0, the assumed floor (one
+    search's pitch is loose along its ridge with the length: a camera at its set-up's pitch keeps the set-up's).
+
+    The median's standard error has two parts. Its own, 1.2533 x 1.4826 x MAD / sqrt(n), from the searches'
+    spread, shrinks with their number. ``systematic_deg`` does not: what biases every search alike (the floor's
+    texture, the images' smoothing, a lane line at the region's side) moves their median and not their spread, so
+    n searches tell the pitch no better than it (docs/scale_suite.md, "The pitch searches' shared error")."""
     p = np.asarray(pitches, float)
     if len(p) < MIN_PITCH_SEARCHES:
         return 0.0
     med = float(np.median(p))
     se = 1.2533 * 1.4826 * float(np.median(np.abs(p - med))) / math.sqrt(len(p))
-    return med if abs(med) > sigmas * se else 0.0
+    return med if abs(med) > sigmas * math.hypot(se, systematic_deg) else 0.0
 
 
 class RoadRegionCue:
@@ -574,7 +578,7 @@ class RoadRegionCue:
             self._steps_since_search += 1
         if not self.pitches:
             return None
-        pooled = pooled_pitch(list(self.pitches), c.pitch_sigmas)
+        pooled = pooled_pitch(list(self.pitches), c.pitch_sigmas, c.pitch_systematic_deg)
         on = measure_step(self.camera, img0, img1, T_wc0, T_wc1, rot_x(np.radians(pooled)) @ n_cam, h,
                           self._on_pitch, self.grid, masks, self._rays)
         return None if on is None else replace(on, pitch_deg=pooled)
