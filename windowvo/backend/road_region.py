@@ -311,6 +311,29 @@ def _parabola_peak(xs: np.ndarray, cs: np.ndarray, i: int) -> float:
     return float(xs[i] + off * (xs[i + 1] - xs[i]))
 
 
+def gradient_along_flow(img: np.ndarray, uv: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """Each pixel's share of its image gradient along its flow: ``|g . f| / (|g| |f|)`` for the pixels ``uv`` (N, 2)
+    int of ``img`` (central differences, clamped at the image's border) and their flows ``f`` (N, 2); 1 where the
+    gradient or the flow is zero.
+
+    A step's length (and the floor's pitch) moves the floor's pixels along their flow (the rays from the focus of
+    expansion), so only the gradient's component along it tells them; a pixel whose gradient is across it (the
+    flank of a lane line parallel to the motion) fits every length alike. Such pixels are not harmless: on the
+    rendered straight streets, whose lane lines run along the region's sides, they pull the pitch search half a
+    degree off at ground truth's motion and the length 4-6% long (docs/scale_suite.md, "Lane lines along the
+    motion"). Direct methods select their pixels by the same argument (LSD-SLAM's gradient along the epipolar line).
+    ``road_region.min_gradient_alignment`` keeps the pixels whose share is at least it."""
+    hgt, wid = img.shape[:2]
+    u, v = uv[:, 0], uv[:, 1]
+    ul, ur = np.clip(u - 1, 0, wid - 1), np.clip(u + 1, 0, wid - 1)
+    vu, vd = np.clip(v - 1, 0, hgt - 1), np.clip(v + 1, 0, hgt - 1)
+    g = np.stack([img[v, ur].astype(np.float64) - img[v, ul], img[vd, u].astype(np.float64) - img[vu, u]], axis=1)
+    f = np.asarray(flow, np.float64)
+    dot = np.abs((g * f).sum(axis=1))
+    norm = np.linalg.norm(g, axis=1) * np.linalg.norm(f, axis=1)
+    return np.where(norm > 1e-12, dot / np.where(norm > 1e-12, norm, 1.0), 1.0)
+
+
 def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_world_cam0: np.ndarray,
                  T_world_cam1: np.ndarray, n_cam: np.ndarray, h: float, cfg: RoadRegionConfig,
                  grid: tuple[np.ndarray, np.ndarray] | None = None,
@@ -326,7 +349,9 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
     separate. The floor's pitch is searched with the length (``pitch_search_deg``; the module's docstring). Returns
     the fit, or None when the floor region does not measure it: too few pixels, too little motion of the floor in
     the image, the correlation below ``min_correlation``, or the length's peak at the edge of its search.
-    ``memo``: the caller's store of ``floor_rays`` by assumed floor (they depend on nothing else with one ``grid``)."""
+    ``memo``: the caller's store of ``floor_rays`` by assumed floor (they depend on nothing else with one ``grid``).
+    With ``min_gradient_alignment``, the region's pixels whose gradient lies across their flow at the estimate's
+    length are left out first (``gradient_along_flow``)."""
     T_c1_c0 = np.linalg.inv(T_world_cam1) @ T_world_cam0
     R, t = T_c1_c0[:3, :3], T_c1_c0[:3, 3]
     d_est = float(np.linalg.norm(t))
@@ -349,8 +374,15 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
     if len(uv0) < cfg.min_pixels:
         return None
     t_dir = t / d_est
-    warp = _Warp(camera, img0, img1, uv0, X0, R, t_dir, n_cam, h, cfg.min_pixels, masks[1], cfg.interpolation)
     s_est = d_est / h
+    warp = _Warp(camera, img0, img1, uv0, X0, R, t_dir, n_cam, h, cfg.min_pixels, masks[1], cfg.interpolation)
+    if cfg.min_gradient_alignment > 0:
+        (uv_s, _), (uv_r, _) = warp.pixels(s_est), warp.pixels(0.0)
+        keep = gradient_along_flow(img0, uv0, uv_s - uv_r) >= cfg.min_gradient_alignment
+        if keep.sum() < cfg.min_pixels:
+            return None
+        uv0, X0 = uv0[keep], X0[keep]
+        warp = _Warp(camera, img0, img1, uv0, X0, R, t_dir, n_cam, h, cfg.min_pixels, masks[1], cfg.interpolation)
     if warp.flow_px(s_est) < cfg.min_flow_px:
         return None
     if cfg.pitch_search_deg > 0:
