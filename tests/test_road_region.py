@@ -6,12 +6,15 @@ not against its own model."""
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import gtsam
 import numpy as np
 import pytest
 
 from windowvo.backend.road_region import (
+    MIN_PITCH_SEARCHES,
     RoadRegionCue,
     _Warp,
     base_distance,
@@ -307,6 +310,29 @@ def test_the_pooled_pitch_claims_no_better_than_the_searches_shared_error():
     assert pooled_pitch(half, 3.0, 0.2) == 0.0
     assert pooled_pitch([p + 0.5 for p in half], 3.0, 0.2) == pytest.approx(1.0)
     assert pooled_pitch([-p - 0.5 for p in half], 3.0, 0.2) == pytest.approx(-1.0)
+
+
+def test_a_step_on_an_untested_pitch_has_its_sigma_widened_by_what_the_pitch_moves_it():
+    """Until the pool holds MIN_PITCH_SEARCHES searches, a step's sigma is widened by the length ``untested_pitch_deg``
+    moves it; the widening is the measurement's own sensitivity: the step measured on a floor pitched 0.5 deg either
+    way (the images the same) moves by what the sigma says a degree does (4.31% and 4.36% when written; within 10%);
+    once the pool can be tested, or with the key at 0, the sigma is ``sigma_fraction``."""
+    cam, tex = _camera(), _texture(3, lane_lines=False)
+    T0, T1 = _step()
+    img0, img1 = smoothed(_render(cam, T0, tex)), smoothed(_render(cam, T1, tex))
+    n_cam, h = floor_in_camera(cam.T_base_cam, np.array([0.0, 0.0, 1.0]), 0.0)
+    flat = RoadRegionConfig(enabled=True, pitch_search_deg=0.0)
+    lengths = [measure_step(cam, img0, img1, T0 @ cam.T_base_cam, T1 @ cam.T_base_cam, rot_x(np.radians(d)) @ n_cam, h,
+                            flat).camera_m for d in (-0.5, 0.5)]
+    per_deg = abs(math.log(lengths[1] / lengths[0]))  # the length's share a degree of the floor's pitch moves
+    cfg = RoadRegionConfig(enabled=True, untested_pitch_deg=1.0)
+    cue = RoadRegionCue(cam, cfg, cam.T_base_cam)
+    widened = cue.step_sigma_fraction(n_cam, h)
+    assert math.sqrt(widened**2 - cfg.sigma_fraction**2) == pytest.approx(per_deg, rel=0.1), (widened, per_deg)
+    cue.pitches.extend([0.1] * MIN_PITCH_SEARCHES)
+    assert cue.step_sigma_fraction(n_cam, h) == cfg.sigma_fraction
+    off = RoadRegionCue(cam, RoadRegionConfig(enabled=True), cam.T_base_cam)
+    assert off.step_sigma_fraction(n_cam, h) == off.cfg.sigma_fraction
 
 
 def test_the_cue_measures_on_the_pooled_pitch_of_its_searches():

@@ -325,6 +325,11 @@ class RoadRegionConfig(_Section):
                                         "0.2 was measured: the scale suite's fused streets 0.80x and floor-only "
                                         "streets 0.78x, KITTI the same, but held-out fused streets 1.07-1.13x "
                                         "(docs/scale_suite.md)")
+    untested_pitch_deg: float = Field(0.0, ge=0, le=10, description="with pitch_window above 1, the floor's pitch "
+                                      "against the assumed one is taken as unknown to this many degrees until the pool "
+                                      "holds the 5 searches it is first tested with: a step measured before then has "
+                                      "its sigma widened by the length that pitch moves it (about 7% a degree for the "
+                                      "region's depths; 0: sigma_fraction alone)")
     pitch_every: int = Field(1, ge=1, description="with pitch_window above 1, once pitch_window searches are pooled the "
                              "pitch is searched at every this many steps only (the search costs about four times the "
                              "length's alone; until the pool is full, at every step); the steps between are measured "

@@ -80,6 +80,7 @@ class RoadStep:
     correlation: float  # at the best scale
     n_pixels: int
     pitch_deg: float = 0.0  # the floor's pitch the step found against the assumed normal (camera x axis)
+    sigma_fraction: float = 0.03  # its range factor's sigma as a share of its length (RoadRegionCue.step_sigma_fraction)
 
 
 @dataclass(frozen=True)
@@ -581,7 +582,8 @@ class RoadRegionCue:
         if fit is None:
             return None
         step = RoadStep(k, fit.camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, fit.camera_m),
-                        float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])), fit.correlation, fit.n_pixels, fit.pitch_deg)
+                        float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])), fit.correlation, fit.n_pixels, fit.pitch_deg,
+                        self.step_sigma_fraction(n_cam, h))
         self.pending = step
         return step
 
@@ -614,6 +616,26 @@ class RoadRegionCue:
         on = measure_step(self.camera, img0, img1, T_wc0, T_wc1, rot_x(np.radians(pooled)) @ n_cam, h,
                           self._on_pitch, self.grid, masks, self._rays)
         return None if on is None else replace(on, pitch_deg=pooled)
+
+    def pitch_tested(self) -> bool:
+        """The floor's pitch a step is measured on has been tested: the pool holds MIN_PITCH_SEARCHES searches (or
+        each step searches its own, or none is searched: the set-up's pitch is then the model)."""
+        c = self.cfg
+        return c.pitch_search_deg <= 0 or c.pitch_window <= 1 or len(self.pitches) >= MIN_PITCH_SEARCHES
+
+    def step_sigma_fraction(self, n_cam: np.ndarray, h: float) -> float:
+        """A measured step's sigma as a share of its length: ``sigma_fraction``, widened while the floor's pitch is
+        untested (``untested_pitch_deg``) by the length that pitch moves the step: a floor pitched by ``d`` about the
+        camera's x axis moves each region point's depth by ``(x x n) . X / h`` times ``d`` (its depth in camera
+        heights, for a camera looking along the floor), and the step with the region's depths (their median)."""
+        c = self.cfg
+        if c.untested_pitch_deg <= 0 or self.pitch_tested():
+            return c.sigma_fraction
+        _, X = region_rays(self.grid, n_cam, h, c)
+        if len(X) == 0:
+            return c.sigma_fraction
+        per_rad = float(np.median(np.abs(X @ np.cross([1.0, 0.0, 0.0], n_cam)))) / h
+        return math.hypot(c.sigma_fraction, per_rad * math.radians(c.untested_pitch_deg))
 
     def take_pending(self) -> RoadStep | None:
         step, self.pending = self.pending, None
@@ -701,7 +723,7 @@ class RoadRegion:
         if step is None or step.keyframe - 1 <= w0 or not self.floor.ties_allowed():
             return
         r = self.cfg.ground.road_region
-        graph.add(range_factor(X(step.keyframe - 1), X(step.keyframe), step.base_m, r.sigma_fraction * step.base_m,
+        graph.add(range_factor(X(step.keyframe - 1), X(step.keyframe), step.base_m, step.sigma_fraction * step.base_m,
                                self.cfg.ground.robust, threshold(r.robust_k, 1, self.cfg)))
         self.n_factors += 1
 
