@@ -328,7 +328,7 @@ class RoadRegionConfig(_Section):
     untested_pitch_deg: float = Field(0.0, ge=0, le=10, description="with pitch_window above 1, the floor's pitch "
                                       "against the assumed one is taken as unknown to this many degrees until the pool "
                                       "holds the 5 searches it is first tested with: a step measured before then has "
-                                      "its sigma widened by the length that pitch moves it (about 7% a degree for the "
+                                      "its sigma widened by the length that pitch moves it (4-7% a degree for the "
                                       "region's depths; 0: sigma_fraction alone)")
     pitch_every: int = Field(1, ge=1, description="with pitch_window above 1, once pitch_window searches are pooled the "
                              "pitch is searched at every this many steps only (the search costs about four times the "
