@@ -24,7 +24,8 @@ change of the floor's image motion from the region's near rows to its far ones s
 pitched against ``T_base_cam``) when known, else the set-up's (the base's z axis); on a base rocking on its suspension,
 the window's mean of it seen from the step's first keyframe (``RoadRegion.level_floor``: the keyframe's rocking
 applied; the pitches are still pooled against the mount's normal). A step's sigma is ``sigma_fraction`` of its
-length. Masked pixels (``frontend`` masks: a bonnet, the robot's own body) are left out of the region in both images.
+length (widened while its pitch is not yet tested, ``untested_pitch_deg``). Pixels whose gradient lies across their
+flow (a lane line along the motion) tell no length and may be left out (``min_gradient_alignment``). Masked pixels (``frontend`` masks: a bonnet, the robot's own body) are left out of the region in both images.
 The images are smoothed (``blur_px``) and, optionally, contrast-normalised (``normalise_px``: a bright lane line then
 weighs no more than the asphalt) before the region is sampled; image k is read between its pixels bilinearly, or
 bicubically (``interpolation``), which biases a warp's scale less (docs/scale_suite.md, "How the region samples its
@@ -79,8 +80,8 @@ class RoadStep:
     estimate_camera_m: float  # the estimate's camera distance when measured
     correlation: float  # at the best scale
     n_pixels: int
-    pitch_deg: float = 0.0  # the floor's pitch the step found against the assumed normal (camera x axis)
-    sigma_fraction: float = 0.03  # its range factor's sigma as a share of its length (RoadRegionCue.step_sigma_fraction)
+    pitch_deg: float  # the floor's pitch the step found against the assumed normal (camera x axis)
+    sigma_fraction: float  # its range factor's sigma as a share of its length (RoadRegionCue.step_sigma_fraction)
 
 
 @dataclass(frozen=True)
