@@ -41,7 +41,7 @@ def test_the_mount_judgement_switches_once_to_the_learnt_normal(camera, mode):
     assert fm.floor_normal_base() is None
     for i in range(12):
         fm.floor_attitude.add(tilted)
-        switched = fm.judge_mount(i, calibrating=True)
+        switched = fm.judge_mount(i)
         assert switched == (mode is MountCalibration.AUTO and i == 9), i  # ready (and significant) at 10 fits
     n = fm.floor_normal_base()
     if mode is MountCalibration.OFF:

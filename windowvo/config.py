@@ -398,7 +398,7 @@ class GroundConfig(_Section):
         MountCalibration.AUTO, description="measure floor heights along the floor's normal in the base frame learnt "
         "from the floor planes fitted so far (a camera mount pitched or rolled against T_base_cam: 1 deg made 5.5% of "
         "scale error on the rendered loop): auto: from the first keyframe where the learnt tilt exceeds 0.3 deg and "
-        "three standard errors (then the wheel calibration's scale is released once); on: always, tying no floor "
+        "three standard errors; on: always, tying no floor "
         "point before it is learnt; off: the base z axis (the normal is learnt and reported either way); "
         "true/false mean on/off")
 
@@ -455,7 +455,7 @@ class GroundConfig(_Section):
         "it on either side lose their ground factors and keep their projections. Level-frame ground factors (a "
         "rocking base) are not judged. null: never")
     road_region: RoadRegionConfig = Field(RoadRegionConfig(), description="the floor measured by region: each "
-                                          "keyframe step's length from the floor's pixels (off by default)")
+                                          "keyframe step's length from the floor's pixels")
 
     @model_validator(mode="after")
     def _road_region_ahead(self):

@@ -337,14 +337,12 @@ def calibration_prior(k: int, calib: np.ndarray, sigmas: np.ndarray):
                                    gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, dtype=float)))
 
 
-def calibration_random_walk(cfg: BackendConfig, k_prev: int, k: int, distance: float, release_scale: bool = False):
+def calibration_random_walk(cfg: BackendConfig, k_prev: int, k: int, distance: float):
     """The calibration drifts slowly: a random walk from ``C(k_prev)`` to ``C(k)`` whose sigma grows
-    with the square root of the distance driven between them. ``release_scale``: the scale may jump as
-    far as its prior allows (what the window learnt about it came from a floor model found wrong)."""
+    with the square root of the distance driven between them."""
     wc = cfg.wheel_calibration
     d = np.sqrt(max(distance, 1e-3))
-    s_scale = wc.scale_prior_sigma if release_scale else wc.scale_walk_per_sqrt_m * d
-    sig = np.array([s_scale, wc.yaw_bias_walk_per_sqrt_m * d, wc.yaw_scale_walk_per_sqrt_m * d])
+    sig = np.array([wc.scale_walk_per_sqrt_m * d, wc.yaw_bias_walk_per_sqrt_m * d, wc.yaw_scale_walk_per_sqrt_m * d])
     return gtsam.BetweenFactorPoint3(C(k_prev), C(k), np.zeros(3), gtsam.noiseModel.Diagonal.Sigmas(sig))
 
 

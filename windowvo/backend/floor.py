@@ -103,7 +103,7 @@ class FloorModel:
         # shows there); with ground.mount_calibration it is also used.
         self.floor_attitude = FloorAttitude(g.mount_min_fits, g.mount_fits, g.mount_from_motion)
         # ground.mount_calibration auto: the learnt normal is used from the first keyframe where its tilt is
-        # significant on (sticky), and the wheel calibration's scale is released once at that keyframe.
+        # significant on (sticky).
         self.mount_normal_used = g.mount_calibration is MountCalibration.ON
         self.retie_pending = False  # the window's floor landmarks are re-tied at the next update
         # ground.floor_state: the keyframes with a floor frame F(k) in the smoother (their floor points tie to it).
@@ -257,25 +257,23 @@ class FloorModel:
         return mask, fit
 
     # ------------------------------------------------------------------ which floor they are tied to
-    def judge_mount(self, k: int, calibrating: bool) -> bool:
+    def judge_mount(self, k: int) -> bool:
         """``ground.mount_calibration`` auto: switch to the learnt floor normal once its tilt is significant.
-        Returns whether it switched at keyframe k (the caller then releases the wheel calibration's scale).
+        Returns whether it switched at keyframe k.
 
         Until then the floor points were tied to the base's xy plane, which a tilted mount makes the wrong
         floor. So at the switch the window's floor landmarks are re-tied along the learnt normal
-        (``retie_window_floor``), and since the scale they gave also went into the wheel calibration,
-        which its slow random walk would carry for tens of metres, the calibration's scale is released
-        once (its next state joins with a random walk as wide as its prior). Measured on loops whose
-        camera.yaml is 0.5 / 1 / -1 deg off: 0.13-0.26 m -> 0.010-0.021 m (docs/performance.md, mount study)."""
+        (``retie_window_floor``). Measured on loops whose camera.yaml is 0.5 / 1 / -1 deg off: 0.13-0.26 m ->
+        0.010-0.021 m (docs/performance.md, mount study). The wheel calibration's scale is not released at the
+        switch (it was until stop 58: no measurable effect on 23 sequences, docs/scale_suite.md)."""
         if (self.cfg.ground.mount_calibration is not MountCalibration.AUTO or self.mount_normal_used
                 or not self.floor_attitude.significant()):
             return False
         self.mount_normal_used = self.retie_pending = True
         tx, ty = self.floor_attitude.tilt_deg()
-        released = ", and the wheel calibration's scale is released" if calibrating else ""
         log.warning("keyframe %d: the floor is tilted %.2f deg in the base frame (T_base_cam's pitch or roll looks "
-                    "off by that): floor heights are measured along the learnt normal from here on%s", k,
-                    float(np.hypot(tx, ty)), released)
+                    "off by that): floor heights are measured along the learnt normal from here on", k,
+                    float(np.hypot(tx, ty)))
         return True
 
     def level_up(self, k: int, w0: int, T_guess: np.ndarray, fit: PlaneFit | None) -> np.ndarray | None:

@@ -310,8 +310,7 @@ class SlidingWindowBackend:
         lap = Laps()
         self.wheel.start_with_floor(k, self.floor.n_ground_keyframes + self.road.n_factors)
         observe_motion(self.floor.floor_attitude, fo, self.T_base_cam)
-        if self.floor.judge_mount(k, self.calibrate):
-            self.wheel.release_scale()
+        self.floor.judge_mount(k)
         lap(Stage.BACKEND_FLOOR)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()

@@ -38,11 +38,6 @@ class WheelCalibrationStates:
         self.distance_m = 0.0  # driven since C(key) was created (its random walk)
         wc = cfg.wheel_calibration
         self.calib = WheelCalibration(wc.initial_scale, wc.initial_yaw_bias_per_m, yaw_scale=wc.initial_yaw_scale)
-        self._release_scale = False  # the next new state joins with a random walk as wide as the scale's prior
-
-    def release_scale(self) -> None:
-        """Release the calibration's scale once: its next state joins with a random walk as wide as its prior."""
-        self._release_scale = True
 
     def start_with_floor(self, k: int, n_ground_keyframes: int) -> None:
         """Start the online calibration at keyframe k once floor points have been tied at some keyframe."""
@@ -64,9 +59,7 @@ class WheelCalibrationStates:
         each update (one per keyframe made the back end ~50% slower). A new state ``C(k)`` joins with
         a prior (the first one) or a random walk from the previous one, so the chain never breaks; a
         state in use has its timestamp refreshed, so it leaves with the last pose whose step it holds."""
-        release = self._release_scale
-        self._release_scale = False
-        if k != self.start and self.key >= 0 and not self.block_starts(k) and not release:
+        if k != self.start and self.key >= 0 and not self.block_starts(k):
             stamps[C(self.key)] = float(k)
             return C(self.key)
         values.insert(C(k), self._vector())
@@ -74,7 +67,7 @@ class WheelCalibrationStates:
         if k == self.start or self.key < 0:
             graph.add(fac.calibration_prior(k, self._vector(), self._prior_sigmas()))
         else:
-            graph.add(fac.calibration_random_walk(self.cfg, self.key, k, self.distance_m, release_scale=release))
+            graph.add(fac.calibration_random_walk(self.cfg, self.key, k, self.distance_m))
         self.key, self.distance_m = k, 0.0
         return C(k)
 
