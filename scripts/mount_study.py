@@ -61,22 +61,13 @@ def main() -> int:
     ap.add_argument("--base", action="append", metavar="K=V", help="the first setting's overrides (repeatable)")
     ap.add_argument("--set", action="append", metavar="K=V", help="the second's (repeatable)")
     args = ap.parse_args()
-    try:
-        args.work.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        print(f"mount_study.py: error: cannot use {args.work}: {err.strerror}", file=sys.stderr)
-        return 2
     base, new = tuple(args.base or ()), tuple(args.set or ())
-    from windowvo.config import apply_overrides, config_from_dict
-    from windowvo.errors import WindowVOError
+    from windowvo.tools.scale_suite import study_args_error
 
-    for overrides in (base, new):  # refused here, in one line, not in a worker after the renders
-        try:
-            config_from_dict(apply_overrides({"sequence": str(args.work), "output": str(args.work / "check")},
-                                             list(overrides)))
-        except WindowVOError as err:
-            print(f"mount_study.py: error: {err}", file=sys.stderr)
-            return 2
+    err = study_args_error(args.work, base, new)
+    if err is not None:
+        print(f"mount_study.py: error: {err}", file=sys.stderr)
+        return 2
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
         results = list(ex.map(run_case, [(args.work, c, base, new) for c in CASES]))
     ratios = []

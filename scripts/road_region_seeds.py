@@ -108,26 +108,17 @@ def main() -> int:
     ap.add_argument("--set", action="append", metavar="K=V", help="the second's (default: the region on, or the "
                     "slip switch on)")
     args = ap.parse_args()
-    try:
-        args.work.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        print(f"road_region_seeds.py: error: cannot use {args.work}: {err.strerror}", file=sys.stderr)
-        return 2
     cases, ways, off, on = STUDIES[args.cases]
     if args.cases == "kitti" and not all((SHARED_DATA / n).is_dir() for n in KITTI_EXCERPTS):
         print(f"road_region_seeds.py: error: the KITTI excerpts are not in {SHARED_DATA}", file=sys.stderr)
         return 2
     base, new = tuple(args.base or off), tuple(args.set or on)
-    from windowvo.config import apply_overrides, config_from_dict
-    from windowvo.errors import WindowVOError
+    from windowvo.tools.scale_suite import study_args_error
 
-    for overrides in (base, new):  # refused here, in one line, not in a worker after the renders
-        try:
-            config_from_dict(apply_overrides({"sequence": str(args.work), "output": str(args.work / "check")},
-                                             list(overrides)))
-        except WindowVOError as err:
-            print(f"road_region_seeds.py: error: {err}", file=sys.stderr)
-            return 2
+    err = study_args_error(args.work, base, new)
+    if err is not None:
+        print(f"road_region_seeds.py: error: {err}", file=sys.stderr)
+        return 2
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
         results = list(ex.map(run_case, [(args.work, c, ways, base, new) for c in cases]))
     for name, (f0, f1, g0, g1) in results:

@@ -69,7 +69,8 @@ def test_lane_lines_along_the_motion_are_left_out_of_the_pitch_search(seq_factor
     """The scale suite's straight street (seed 301, 15 s), measured at ground truth's motion: its lane lines run along
     the region's sides, and with every pixel the pitch search goes half a degree off and the steps 4-6% long (RMS
     8.9% when written); with ``min_gradient_alignment: 0.3`` the lines' flanks are left out (RMS 2.1%, the pitch
-    +0.2 deg), and with the default 0.1 too (RMS 3.0%). On the assumed floor (the pitch not searched) the lengths are better too (RMS 0.83% -> 0.23%)."""
+    +0.2 deg), and with the default 0.1 too (RMS 3.0%). On the assumed floor (the pitch not searched) the lengths are
+    better too (RMS 0.83% -> 0.23%)."""
     from windowvo.tools import scale_suite as ss
 
     mod = _script()

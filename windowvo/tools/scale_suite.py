@@ -148,6 +148,24 @@ def ensure_rendered(case: ScaleCase, cache: Path) -> Path:
     return seq_dir
 
 
+def study_args_error(work: Path, *settings: tuple[str, ...]) -> str | None:
+    """The one-line error of a study's work folder (created here) or of its settings' config overrides (checked on a
+    stand-in config before any render, so that a bad key is refused at once and not in a worker), or None."""
+    from ..config import apply_overrides, config_from_dict
+    from ..errors import WindowVOError
+
+    try:
+        work.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        return f"cannot use {work}: {err.strerror}"
+    for overrides in settings:
+        try:
+            config_from_dict(apply_overrides({"sequence": str(work), "output": str(work / "check")}, list(overrides)))
+        except WindowVOError as err:
+            return str(err)
+    return None
+
+
 def case_config(case: ScaleCase, cache: Path, out: Path, way: str, overrides: tuple[str, ...] = (),
                 seed: int | None = None) -> dict:
     """The config mapping of one way of one case (sequential, no recording); ``overrides`` (``dotted.key=value``,
