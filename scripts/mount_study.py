@@ -8,8 +8,8 @@ camera looks further down than camera.yaml says), two of them exact, and runs ea
 overrides and with the ``--set`` ones (default: both the defaults). Prints per sequence the ATE SE(3), the keyframes
 at which the learnt floor normal was in use (``floor_normal_learnt``: the switch of ``ground.mount_calibration:
 auto``), the learnt tilt toward +x at the end (the mount's pitch as the plane fits see it) and the wheel calibration's
-final scale, then the ratios' geometric mean and worst case. docs/scale_suite.md, "The mount switch's wheel release
-(stop 58)", quotes it.
+final scale, then the ratios' geometric mean and worst case. docs/scale_suite.md, "The mount switch's wheel release,
+the plane fits' pitch, and the region's pixel selection again (stop 58)", quotes it.
 """
 
 from __future__ import annotations

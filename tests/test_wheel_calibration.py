@@ -1,6 +1,6 @@
 """The wheel calibration states C(k) on their own (``windowvo/backend/wheel_calibration.py``): when they start,
 one state per block of keyframes that leave the window together, the random walk over the distance driven,
-the released scale, and a window reset's restart of the chain."""
+and a window reset's restart of the chain."""
 
 import gtsam
 import numpy as np
