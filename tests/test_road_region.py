@@ -584,7 +584,8 @@ def test_the_region_measures_only_where_the_corners_on_the_floor_are_few(most):
 
     cam, tex = _camera(), _texture(6, lane_lines=False)
     T0, T1 = _step()
-    cfg = BackendConfig(ground={"road_region": {"enabled": True, "max_floor_landmarks": most}})
+    # The set-up's pitch (no pitch search): every measured step tests the cues (the next test: a searched pitch).
+    cfg = BackendConfig(ground={"road_region": {"enabled": True, "max_floor_landmarks": most, "pitch_search_deg": 0.0}})
     road = RoadRegion(cam, cfg, _Floor(), {4: T0, 5: T1})
     img0, img1 = _render(cam, T0, tex), _render(cam, T1, tex)
     for n_tied, measured in ((40, most is None), (39, True)):
@@ -594,3 +595,25 @@ def test_the_region_measures_only_where_the_corners_on_the_floor_are_few(most):
         assert (height is not None) == measured, (n_tied, most)
         if measured:
             assert height == pytest.approx(HEIGHT, rel=0.01)  # the true step: the known height
+
+
+def test_a_step_on_an_untested_pitch_does_not_test_the_cues():
+    """With the floor's pitch searched and pooled (the defaults), a step measured before the pool holds
+    ``MIN_PITCH_SEARCHES`` searches is recorded (its ratio to the estimate's step) but gives the cue check no
+    height: its length moves 4-9% a degree of a pitch nobody has tested yet. From the fifth search on it does."""
+    from windowvo.backend.road_region import MIN_PITCH_SEARCHES, RoadRegion
+
+    cam, tex = _camera(), _texture(6, lane_lines=False)
+    T0, T1 = _step()
+    cfg = BackendConfig(ground={"road_region": {"enabled": True}})
+    assert cfg.ground.road_region.pitch_search_deg > 0 and cfg.ground.road_region.pitch_window > MIN_PITCH_SEARCHES
+    road = RoadRegion(cam, cfg, _Floor(), {4: T0, 5: T1})
+    img0, img1 = _render(cam, T0, tex), _render(cam, T1, tex)
+    heights = []
+    for _ in range(MIN_PITCH_SEARCHES + 1):
+        road.forget()  # the same step measured again: one more pitch search in the pool each time
+        road.after_update(4, img0, None)
+        heights.append(road.after_update(5, img1, None))
+        assert np.isfinite(road.ratio)  # measured every time
+    assert heights[: MIN_PITCH_SEARCHES - 1] == [None] * (MIN_PITCH_SEARCHES - 1), heights
+    assert all(h == pytest.approx(HEIGHT, rel=0.01) for h in heights[MIN_PITCH_SEARCHES - 1:]), heights

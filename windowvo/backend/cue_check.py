@@ -8,7 +8,9 @@ Against the window's estimate, at each keyframe where both are measured over the
 * the wheels say the estimate's scale is off by ``D_wheels / D_estimate`` (their raw, uncalibrated distance over
   the stretch against the estimate's);
 * the floor says it is off by ``h_known / h_estimate`` (the known camera height against the height of the floor
-  planes fitted in the estimate over the stretch, each keyframe's fit: ``FloorModel.floor_of``).
+  planes fitted in the estimate over the stretch, each keyframe's fit: ``FloorModel.floor_of``; where no plane is
+  fitted, the height the floor's region implies, ``RoadRegion.after_update``, only once the floor's pitch it is
+  measured on has been tested: before, a pitch error moves it 4-9% a degree).
 
 Their ratio ``(D_estimate h_known) / (D_wheels h_estimate)`` does not depend on the estimate's scale, so it is a
 test of the cues, not of the fusion. Its log has the variance of the wheel scale's prior plus the floor height's

@@ -665,7 +665,9 @@ class RoadRegion:
                      n_floor_tied: int = 0, w0: int | None = None) -> float | None:
         """Keyframe k's step measured at the new estimate (its factor goes into the next update). Returns the camera
         height the measurement implies in the estimate's scale (the known height times the estimate's step over the
-        measured one; None: not measured), the floor's measurement for the cue check. ``n_floor_tied``: the floor
+        measured one; None: not measured, or measured on a floor pitch not yet tested, ``RoadRegionCue.pitch_tested``,
+        whose error moves the length 4-9% a degree and would fail the test or pass it by chance), the floor's
+        measurement for the cue check. ``n_floor_tied``: the floor
         landmarks the window ties to the floor (``road_region.max_floor_landmarks``); ``w0``: the window's first
         keyframe (the keyframes a rocking base's level floor is taken over; default: keyframe k-1 alone)."""
         self.ratio = self.pitch_deg = float("nan")
@@ -688,6 +690,8 @@ class RoadRegion:
             return None
         self.ratio = step.camera_m / step.estimate_camera_m
         self.pitch_deg = step.pitch_deg
+        if not self.cue.pitch_tested():
+            return None  # its length is off by 9% a degree of a pitch not yet tested: no test of the cues
         return self.floor.camera_height_m / self.ratio
 
     def level_floor(self, k: int, w0: int, n_mount: np.ndarray) -> np.ndarray | None:
