@@ -415,7 +415,9 @@ def test_the_cue_measures_consecutive_keyframes_only():
     cue.keep_image(6, _render(cam, T0, tex))
     cue.keep_image(7, _render(cam, T1, tex))
     step = cue.measure(7, T0, T1, np.array([0.0, 0.0, 1.0]), 0.0)
-    assert step is not None and cue.take_pending() is step and cue.take_pending() is None
+    assert step is not None
+    cue.keep_image(-1, None)  # a window reset forgets the kept images
+    assert cue.measure(7, T0, T1, np.array([0.0, 0.0, 1.0]), 0.0) is None
     assert step.camera_m == pytest.approx(_camera_distance(cam, T0, T1), rel=0.01)
 
 
@@ -597,23 +599,44 @@ def test_the_region_measures_only_where_the_corners_on_the_floor_are_few(most):
             assert height == pytest.approx(HEIGHT, rel=0.01)  # the true step: the known height
 
 
-def test_a_step_on_an_untested_pitch_does_not_test_the_cues():
-    """With the floor's pitch searched and pooled (the defaults), a step measured before the pool holds
-    ``MIN_PITCH_SEARCHES`` searches is recorded (its ratio to the estimate's step) but gives the cue check no
-    height: its length moves 4-9% a degree of a pitch nobody has tested yet. From the fifth search on it does."""
+def test_steps_on_an_untested_pitch_are_measured_again_once_it_is_tested():
+    """With wheels (without, each step is tied as measured): the set-up's camera pitched 1 deg off its real mount, eight steps (``RoadRegion``, the defaults: the pitch
+    searched and pooled). The first MIN_PITCH_SEARCHES - 1 steps, measured on the set-up's pitch, are 3-10% off: each is
+    recorded (``ratio``) but neither tied (nothing pending) nor handed to the cue check (no height). At the step whose
+    search completes the pool, they are measured again on the pooled pitch and join it: every pending step then lies
+    within 1% of the true length, and the cue check gets their heights (``revised``, within 1% of the camera
+    height). From then on each step is pending alone."""
+    from dataclasses import replace as dc_replace
+
     from windowvo.backend.road_region import MIN_PITCH_SEARCHES, RoadRegion
 
-    cam, tex = _camera(), _texture(6, lane_lines=False)
-    T0, T1 = _step()
+    cam, tex = _camera(), _texture(7, lane_lines=False)
+    T_bc_wrong = cam.T_base_cam.copy()
+    T_bc_wrong[:3, :3] = T_bc_wrong[:3, :3] @ rot_x(np.radians(1.0))
+    T = [make_T(rot_z(0.2), [0.3, -0.2, 0.0])]
+    for _ in range(8):
+        T.append(T[-1] @ make_T(rot_z(0.02), [0.25, 0.01, 0.0]))
+    # The estimate's base poses carry the true cameras through the wrong mount (as vision's camera poses would).
+    est = {k: Tk @ cam.T_base_cam @ np.linalg.inv(T_bc_wrong) for k, Tk in enumerate(T)}
     cfg = BackendConfig(ground={"road_region": {"enabled": True}})
-    assert cfg.ground.road_region.pitch_search_deg > 0 and cfg.ground.road_region.pitch_window > MIN_PITCH_SEARCHES
-    road = RoadRegion(cam, cfg, _Floor(), {4: T0, 5: T1})
-    img0, img1 = _render(cam, T0, tex), _render(cam, T1, tex)
-    heights = []
-    for _ in range(MIN_PITCH_SEARCHES + 1):
-        road.forget()  # the same step measured again: one more pitch search in the pool each time
-        road.after_update(4, img0, None)
-        heights.append(road.after_update(5, img1, None))
+    road = RoadRegion(dc_replace(cam, T_base_cam=T_bc_wrong), cfg, _Floor(), est, with_wheels=True)
+    alone = RoadRegion(dc_replace(cam, T_base_cam=T_bc_wrong), cfg, _Floor(), est)  # no wheels: tied as measured
+    for k, Tk in enumerate(T):
+        image = _render(cam, Tk, tex)
+        height = road.after_update(k, image, None)
+        alone.after_update(k, image, None)
+        if k == 0:
+            continue
+        assert [s.keyframe for s in alone.pending] == [k] and alone.ratio == road.ratio
         assert np.isfinite(road.ratio)  # measured every time
-    assert heights[: MIN_PITCH_SEARCHES - 1] == [None] * (MIN_PITCH_SEARCHES - 1), heights
-    assert all(h == pytest.approx(HEIGHT, rel=0.01) for h in heights[MIN_PITCH_SEARCHES - 1:]), heights
+        if k < MIN_PITCH_SEARCHES:
+            assert height is None and road.pending == [] and road.revised == {}, k
+            assert abs(road.ratio - 1.0) > 0.03, (k, road.ratio)  # the estimate's cameras are the true ones
+            continue
+        want = list(range(1, k + 1)) if k == MIN_PITCH_SEARCHES else [k]
+        assert [s.keyframe for s in road.pending] == want, k
+        for s in road.pending:
+            assert s.camera_m / _camera_distance(cam, T[s.keyframe - 1], T[s.keyframe]) == pytest.approx(1.0, abs=0.01)
+        assert height == pytest.approx(HEIGHT, rel=0.01)
+        assert sorted(road.revised) == want[:-1]
+        assert all(h == pytest.approx(HEIGHT, rel=0.01) for h in road.revised.values()), road.revised

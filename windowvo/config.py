@@ -297,9 +297,9 @@ class RoadRegionConfig(_Section):
                                           "gradient's component along its motion in the image (the floor's flow "
                                           "between the keyframes) is at least this share of the gradient: a pixel on "
                                           "a lane line parallel to the motion tells nothing of the step's length and "
-                                          "biases the floor's pitch search (0: every pixel). 0.1 since stop 59, with "
-                                          "steps on an untested pitch kept out of the cue check: the scale suite's "
-                                          "fused runs 0.84x the 0-default's (docs/scale_suite.md)")
+                                          "biases the floor's pitch search (0: every pixel). The default since #26's "
+                                          "steps on an untested pitch wait for it with wheels: scale suite fused 0.83x "
+                                          "the 0's (docs/scale_suite.md, \"Steps on an untested pitch\")")
     search_direction_deg: float = Field(1.5, ge=0, lt=20, description="the step's direction is searched within this "
                                         "many degrees sideways of the estimate's, alternately with its length, so that "
                                         "the length does not take up the direction's error (0: the estimate's)")
@@ -327,11 +327,12 @@ class RoadRegionConfig(_Section):
                                         "0.2 was measured: the scale suite's fused streets 0.80x and floor-only "
                                         "streets 0.78x, KITTI the same, but held-out fused streets 1.07-1.13x "
                                         "(docs/scale_suite.md)")
-    untested_pitch_deg: float = Field(0.0, ge=0, le=10, description="with pitch_window above 1, the floor's pitch "
-                                      "against the assumed one is taken as unknown to this many degrees until the pool "
-                                      "holds the 5 searches it is first tested with: a step measured before then has "
-                                      "its sigma widened by the length that pitch moves it (4-7% a degree for the "
-                                      "region's depths; 0: sigma_fraction alone)")
+    untested_pitch_deg: float = Field(0.0, ge=0, le=10, description="with pitch_window above 1 and no wheels, the "
+                                      "floor's pitch against the assumed one is taken as unknown to this many degrees "
+                                      "until the pool holds the 5 searches it is first tested with: a step measured "
+                                      "before then has its sigma widened by the length that pitch moves it (4-7% a "
+                                      "degree for the region's depths; 0: sigma_fraction alone). With wheels such a "
+                                      "step is not tied until the pitch is tested, then measured again on it")
     pitch_every: int = Field(1, ge=1, description="with pitch_window above 1, once pitch_window searches are pooled the "
                              "pitch is searched at every this many steps only (the search costs about four times the "
                              "length's alone; until the pool is full, at every step); the steps between are measured "
@@ -494,9 +495,10 @@ class CueCheckConfig(_Section):
     """Floor against wheels: a chi-square test of the scale each implies, per keyframe (backend/cue_check.py)."""
 
     enabled: bool = Field(True, description="test, at each keyframe with wheels and a floor plane (or a step the "
-                          "floor's region measured on a tested pitch: not before its pitch pool holds 5 searches), "
-                          "whether the scale the floor implies agrees with the wheels' (stats.csv cue_disagreement, "
-                          "cues_agree; the summary's share of agreeing keyframes)")
+                          "floor's region measured on a tested pitch: the steps before its pitch pool holds 5 "
+                          "searches count once they are measured again on it), whether the scale the floor implies "
+                          "agrees with the wheels' (stats.csv cue_disagreement, cues_agree; the summary's share of "
+                          "agreeing keyframes)")
     stretch_keyframes: int = Field(10, ge=1, le=500, description="the test compares distances and floor heights "
                                    "over this many latest keyframes")
     min_distance_m: float = Field(0.3, ge=0, description="... once the wheels drove at least this far over them")

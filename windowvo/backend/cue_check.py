@@ -9,8 +9,9 @@ Against the window's estimate, at each keyframe where both are measured over the
   the stretch against the estimate's);
 * the floor says it is off by ``h_known / h_estimate`` (the known camera height against the height of the floor
   planes fitted in the estimate over the stretch, each keyframe's fit: ``FloorModel.floor_of``; where no plane is
-  fitted, the height the floor's region implies, ``RoadRegion.after_update``, only once the floor's pitch it is
-  measured on has been tested: before, a pitch error moves it 4-9% a degree).
+  fitted, the height the floor's region implies, ``RoadRegion.after_update``, once the floor's pitch it is measured
+  on has been tested: a step measured before is measured again then, and its height added to its keyframe's test
+  entry, ``CueCheck.revise``).
 
 Their ratio ``(D_estimate h_known) / (D_wheels h_estimate)`` does not depend on the estimate's scale, so it is a
 test of the cues, not of the fusion. Its log has the variance of the wheel scale's prior plus the floor height's
@@ -29,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from ..config import CueCheckConfig
 from .chi2 import chi2_quantile
@@ -47,6 +48,7 @@ class CueAgreement:
 
 @dataclass(frozen=True)
 class _Step:
+    keyframe: int
     wheel_m: float
     estimate_m: float
     floor_height_m: float | None  # the keyframe's floor plane fitted in the estimate (None: no plane)
@@ -73,7 +75,7 @@ class CueCheck:
         if wheel_m is None or not math.isfinite(estimate_m):
             self._steps.clear()  # a wheel gap breaks the stretch
             return None
-        self._steps.append(_Step(float(wheel_m), float(estimate_m), floor_height_m))
+        self._steps.append(_Step(k, float(wheel_m), float(estimate_m), floor_height_m))
         result = agreement(k, list(self._steps), self.camera_height_m, self.wheel_scale_sigma,
                            self.floor_sigma_fraction, self.threshold, self.cfg.min_distance_m)
         if result is None:
@@ -84,6 +86,14 @@ class CueCheck:
         elif self.disagree_since is None:
             self.disagree_since = k
         return result
+
+    def revise(self, heights: dict[int, float]) -> None:
+        """Floor heights measured later for keyframes of the stretch (by keyframe) that had none (no plane fitted,
+        the region's step held back until its floor pitch was tested); the next test counts them."""
+        for i, s in enumerate(self._steps):
+            h = heights.get(s.keyframe)
+            if s.floor_height_m is None and h is not None:
+                self._steps[i] = replace(s, floor_height_m=h)
 
     def floor_gated(self) -> bool:
         """Whether the floor's new points stay untied (``gate`` on): the cues disagree now, or they were never

@@ -519,6 +519,9 @@ def range_factor(key0: int, key1: int, base_m: float, sigma_m: float, robust_kin
 
 
 MIN_PITCH_SEARCHES = 5  # the pooled pitch is tested only once this many searches found one
+# Keyframe images a cue keeps: the newest step's two, and those of the steps measured on a pitch not yet tested, which
+# are measured again once it is (a step whose images are gone by then is not)
+KEPT_IMAGES = 2 * MIN_PITCH_SEARCHES
 
 
 def pooled_pitch(pitches: list[float], sigmas: float, systematic_deg: float = 0.0) -> float:
@@ -546,10 +549,9 @@ class RoadRegionCue:
         self.camera, self.cfg, self.T_base_cam = camera, cfg, T_base_cam
         self.grid = pixel_grid(camera, cfg.step_px)
         self._rays: dict = {}  # measure_step's memo of region rays (for self.grid)
-        # (keyframe, smoothed image, mask) of the newest keyframe, and of the one before it
-        self._image: tuple[int, np.ndarray, np.ndarray | None] | None = None
-        self._previous: tuple[int, np.ndarray, np.ndarray | None] | None = None
-        self.pending: RoadStep | None = None  # measured, its factor not yet in the smoother
+        # (keyframe, smoothed image, mask) of the newest keyframes: the step to the newest, and the steps measured on
+        # an untested pitch, which are measured again once it is tested (``RoadRegion.after_update``)
+        self._images: deque[tuple[int, np.ndarray, np.ndarray | None]] = deque(maxlen=KEPT_IMAGES)
         # The floor's pitch the last pitch_window searches found (at every step until there are that many, then at
         # every pitch_every-th), against the assumed normal they were searched from
         self.pitches: deque[float] = deque(maxlen=max(1, cfg.pitch_window))
@@ -561,40 +563,44 @@ class RoadRegionCue:
 
     def keep_image(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None) -> None:
         """Keyframe k's image (grey, as measured) and its usable pixels (0: masked; None: all); no image: the step
-        to it is not measured."""
-        self._previous = self._image
-        c = self.cfg
-        self._image = None if image is None else (k, smoothed(image, c.blur_px, c.normalise_px, c.normalise_floor), mask)
+        to it is not measured (k < 0: the kept images are forgotten, a window reset)."""
+        if k < 0:
+            self._images.clear()
+        elif image is not None:
+            c = self.cfg
+            self._images.append((k, smoothed(image, c.blur_px, c.normalise_px, c.normalise_floor), mask))
+
+    def _kept(self, k: int) -> tuple[int, np.ndarray, np.ndarray | None] | None:
+        return next((f for f in reversed(self._images) if f[0] == k), None)
 
     def measure(self, k: int, T_world_base0: np.ndarray, T_world_base1: np.ndarray, n_base: np.ndarray,
-                floor_offset: float, pool_normal: np.ndarray | None = None) -> RoadStep | None:
-        """The step k-1 -> k from the floor region, at the estimate's poses (after keyframe k's update); kept as
-        ``pending`` for the next update. ``n_base``, ``floor_offset``: the floor in keyframe k-1's base frame.
-        ``pool_normal``: the floor's normal in the base frame the pitches are pooled against (default ``n_base``;
-        a rocking base's levelled floor moves ``n_base`` at every step, not the pitch the searches find)."""
-        self.pending = None
-        if self._image is None or self._previous is None or self._image[0] != k or self._previous[0] != k - 1:
+                floor_offset: float, pool_normal: np.ndarray | None = None, search: bool = True) -> RoadStep | None:
+        """The step k-1 -> k from the floor region, at the estimate's poses (after keyframe k's update), if both
+        images are kept. ``n_base``, ``floor_offset``: the floor in keyframe k-1's base frame. ``pool_normal``: the
+        floor's normal in the base frame the pitches are pooled against (default ``n_base``; a rocking base's
+        levelled floor moves ``n_base`` at every step, not the pitch the searches find). ``search`` false: the
+        length on the pooled pitch alone, the pool untouched (a step measured again)."""
+        img0, img1 = self._kept(k - 1), self._kept(k)
+        if img0 is None or img1 is None:
             return None
         T_wc0, T_wc1 = T_world_base0 @ self.T_base_cam, T_world_base1 @ self.T_base_cam
         n_cam, h = floor_in_camera(self.T_base_cam, n_base, floor_offset)
         pool = n_cam if pool_normal is None else floor_in_camera(self.T_base_cam, pool_normal, 0.0)[0]
-        fit = self._fit(self._previous[1], self._image[1], T_wc0, T_wc1, n_cam, h, (self._previous[2], self._image[2]),
-                        pool)
+        fit = self._fit(img0[1], img1[1], T_wc0, T_wc1, n_cam, h, (img0[2], img1[2]), pool, search)
         if fit is None:
             return None
-        step = RoadStep(k, fit.camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, fit.camera_m),
+        return RoadStep(k, fit.camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, fit.camera_m),
                         float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])), fit.correlation, fit.n_pixels, fit.pitch_deg,
                         self.step_sigma_fraction(n_cam, h))
-        self.pending = step
-        return step
 
     def _fit(self, img0: np.ndarray, img1: np.ndarray, T_wc0: np.ndarray, T_wc1: np.ndarray, n_cam: np.ndarray,
-             h: float, masks: tuple[np.ndarray | None, np.ndarray | None], pool: np.ndarray) -> StepFit | None:
+             h: float, masks: tuple[np.ndarray | None, np.ndarray | None], pool: np.ndarray,
+             search: bool = True) -> StepFit | None:
         """The step's fit: its own (``pitch_window`` 1, or the pitch not searched), or its length searched again on
         the pitch pooled over the last ``pitch_window`` searches (their median; searched at every step until the pool
         is full, then at every ``pitch_every``-th: one more search then moves the median little, and the search is
         four fifths of a step's cost; a change of the normal the pitches are pooled against, ``pool`` in the camera
-        frame, the floor's attitude learnt, starts the pool over)."""
+        frame, the floor's attitude learnt, starts the pool over). ``search`` false: no search, the pool as it is."""
         c = self.cfg
         if c.pitch_search_deg <= 0:
             return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, c, self.grid, masks, self._rays)
@@ -603,7 +609,9 @@ class RoadRegionCue:
         if self._pitch_from is None or float(pool @ self._pitch_from) < math.cos(1e-3):
             self.pitches.clear()
             self._pitch_from = pool
-        if len(self.pitches) < max(1, c.pitch_window) or self._steps_since_search >= c.pitch_every - 1:
+        if not search:
+            pass
+        elif len(self.pitches) < max(1, c.pitch_window) or self._steps_since_search >= c.pitch_every - 1:
             self._steps_since_search = 0
             self.n_searches += 1
             fit = measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks, self._rays)
@@ -638,10 +646,6 @@ class RoadRegionCue:
         per_rad = float(np.median(np.abs(X @ np.cross([1.0, 0.0, 0.0], n_cam)))) / h
         return math.hypot(c.sigma_fraction, per_rad * math.radians(c.untested_pitch_deg))
 
-    def take_pending(self) -> RoadStep | None:
-        step, self.pending = self.pending, None
-        return step
-
 
 class RoadRegion:
     """``ground.road_region`` in the back end (``SlidingWindowBackend``): after each update, the new step measured at
@@ -651,8 +655,12 @@ class RoadRegion:
     as for the floor's corners). Off (``ground.road_region.enabled`` false, or no ground cue): every call does
     nothing."""
 
-    def __init__(self, camera: CameraModel, cfg: BackendConfig, floor, kf_pose: dict[int, np.ndarray]):
+    def __init__(self, camera: CameraModel, cfg: BackendConfig, floor, kf_pose: dict[int, np.ndarray],
+                 with_wheels: bool = False):
         self.cfg = cfg
+        # With wheels, a step on an untested pitch waits until it is tested (the wheels carry the scale meanwhile);
+        # without, it is tied as measured: the only metric cue of the run's first steps (``after_update``)
+        self.with_wheels = with_wheels
         self.floor = floor  # the window's FloorModel: whether the floor is metric and may be tied, its normal
         self.kf_pose = kf_pose  # the window's keyframe poses (the smoother's; read here)
         on = cfg.ground.road_region.enabled and floor.use_ground
@@ -660,39 +668,63 @@ class RoadRegion:
         self.ratio = float("nan")  # the last keyframe's measured step over the estimate's (nan: none)
         self.pitch_deg = float("nan")  # the floor's pitch against the assumed one it was measured on (nan: none)
         self.n_factors = 0  # range factors added to the smoother
+        self.pending: list[RoadStep] = []  # measured, their factors not yet in the smoother
+        self.untested: list[int] = []  # keyframes whose steps were measured on an untested pitch: measured again
+        self.revised: dict[int, float] = {}  # those steps' camera heights once measured again (for the cue check)
 
     def after_update(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None,
                      n_floor_tied: int = 0, w0: int | None = None) -> float | None:
         """Keyframe k's step measured at the new estimate (its factor goes into the next update). Returns the camera
         height the measurement implies in the estimate's scale (the known height times the estimate's step over the
-        measured one; None: not measured, or measured on a floor pitch not yet tested, ``RoadRegionCue.pitch_tested``,
-        whose error moves the length 4-9% a degree and would fail the test or pass it by chance), the floor's
-        measurement for the cue check. ``n_floor_tied``: the floor
+        measured one; None: not measured), the floor's measurement for the cue check. ``n_floor_tied``: the floor
         landmarks the window ties to the floor (``road_region.max_floor_landmarks``); ``w0``: the window's first
-        keyframe (the keyframes a rocking base's level floor is taken over; default: keyframe k-1 alone)."""
+        keyframe (the keyframes a rocking base's level floor is taken over; default: keyframe k-1 alone).
+
+        With wheels, a step measured on a floor pitch not yet tested (``RoadRegionCue.pitch_tested``: the pool holds
+        fewer than MIN_PITCH_SEARCHES searches) is recorded (``ratio``) but neither tied nor tested against the
+        wheels: a pitch error moves its length 4-9% a degree (KITTI's set-up pitch, 1 deg off its road: 12-20%),
+        more than the wheels' scale prior allows them (3%), so until its pitch is tested it could only pull the scale
+        off. It is kept in ``untested`` and measured again, on the pooled pitch, at the keyframe whose search
+        completes the pool; its factor then joins that keyframe's (``pending``) and its height goes to the cue check
+        (``revised``). Without wheels it is tied as measured: nothing else tells the first steps' scale."""
         self.ratio = self.pitch_deg = float("nan")
+        self.revised = {}
+        self.pending = []
         if self.cue is None:
             return None
         self.cue.keep_image(k, image, mask)
         most = self.cfg.ground.road_region.max_floor_landmarks
         if (k == 0 or not self.floor.ground_active() or (k - 1) not in self.kf_pose
                 or (most is not None and n_floor_tied >= most)):
-            self.cue.pending = None
             return None
+        step = self._measure(k, w0, search=True)
+        if step is None or step.camera_m <= 0:
+            return None
+        self.ratio = step.camera_m / step.estimate_camera_m
+        self.pitch_deg = step.pitch_deg
+        if not self.with_wheels:
+            self.pending = [step]
+            return self.floor.camera_height_m / self.ratio
+        if not self.cue.pitch_tested():
+            self.untested = [*self.untested[1 - KEPT_IMAGES:], k]  # older ones' images are gone
+            return None
+        again = [self._measure(j, w0, search=False) for j in self.untested if (j - 1) in self.kf_pose]
+        self.untested = []
+        self.pending = [s for s in again if s is not None and s.camera_m > 0] + [step]
+        self.revised = {s.keyframe: self.floor.camera_height_m * s.estimate_camera_m / s.camera_m
+                        for s in self.pending[:-1]}
+        return self.floor.camera_height_m / self.ratio
+
+    def _measure(self, k: int, w0: int | None, search: bool) -> RoadStep | None:
+        """The step k-1 -> k on the floor as the window sees it from keyframe k-1 (``after_update``)."""
+        assert self.cue is not None
         n = self.floor.floor_normal_base()  # the set-up's base z, or the floor's learnt normal when the floor uses it
         n_mount = np.array([0.0, 0.0, 1.0]) if n is None else n
         level = self.level_floor(k, k - 1 if w0 is None else w0, n_mount)
         if level is not None:
             n = level
-        step = self.cue.measure(k, self.kf_pose[k - 1], self.kf_pose[k], n_mount if n is None else n,
-                                self.floor.floor_offset(n), n_mount)
-        if step is None or step.camera_m <= 0:
-            return None
-        self.ratio = step.camera_m / step.estimate_camera_m
-        self.pitch_deg = step.pitch_deg
-        if not self.cue.pitch_tested():
-            return None  # its length is off by 9% a degree of a pitch not yet tested: no test of the cues
-        return self.floor.camera_height_m / self.ratio
+        return self.cue.measure(k, self.kf_pose[k - 1], self.kf_pose[k], n_mount if n is None else n,
+                                self.floor.floor_offset(n), n_mount, search=search)
 
     def level_floor(self, k: int, w0: int, n_mount: np.ndarray) -> np.ndarray | None:
         """The floor's normal in keyframe k-1's base frame when the base rocks on its suspension, else None (the
@@ -720,21 +752,26 @@ class RoadRegion:
         return self.kf_pose[k - 1][:3, :3].T @ up
 
     def add_factor(self, graph, w0: int) -> None:
-        """The last measured step as a range factor between its two poses ``X(k-1)``, ``X(k)``, if both stay in the
-        window through this update (``w0``: its start) and the floor may be tied."""
+        """The steps measured after the last update (the newest, and those measured again once their pitch was
+        tested), each as a range factor between its two poses ``X(k-1)``, ``X(k)``, if both stay in the window
+        through this update (``w0``: its start) and the floor may be tied."""
         from .factors import X, threshold
 
-        step = None if self.cue is None else self.cue.take_pending()
-        if step is None or step.keyframe - 1 <= w0 or not self.floor.ties_allowed():
+        steps, self.pending = self.pending, []
+        if not self.floor.ties_allowed():
             return
         r = self.cfg.ground.road_region
-        graph.add(range_factor(X(step.keyframe - 1), X(step.keyframe), step.base_m, step.sigma_fraction * step.base_m,
-                               self.cfg.ground.robust, threshold(r.robust_k, 1, self.cfg)))
-        self.n_factors += 1
+        for step in steps:
+            if step.keyframe - 1 <= w0:
+                continue
+            graph.add(range_factor(X(step.keyframe - 1), X(step.keyframe), step.base_m,
+                                   step.sigma_fraction * step.base_m, self.cfg.ground.robust,
+                                   threshold(r.robust_k, 1, self.cfg)))
+            self.n_factors += 1
 
     def forget(self) -> None:
         """The window was reset: no step is measured across it, none is pending."""
         self.ratio = self.pitch_deg = float("nan")
+        self.pending, self.untested, self.revised = [], [], {}
         if self.cue is not None:
             self.cue.keep_image(-1, None)
-            self.cue.pending = None

@@ -99,7 +99,8 @@ class SlidingWindowBackend:
         self.slip = WheelSlipSwitch(cfg)  # a wheel step the window's solution rejects is switched off
         self.floor = FloorModel(camera, cfg, use_odometry, self.lm, self.kf_pose)
         self.vision = LandmarkFactors(camera, cfg, self.lm, self.floor, self.kf_pose, self.K, self.body_P_sensor)
-        self.road = RoadRegion(camera, cfg, self.floor, self.kf_pose)  # ground.road_region (does nothing when off)
+        # ground.road_region (does nothing when off)
+        self.road = RoadRegion(camera, cfg, self.floor, self.kf_pose, with_wheels=use_odometry)
         self._estimate: gtsam.Values | None = None
         self.n_resets = 0
         self._new_smoother()
@@ -350,7 +351,8 @@ class SlidingWindowBackend:
             self.floor.last_agreement = None  # a slipping step says nothing about the tyre's scale
         elif k > 0:
             step = np.linalg.norm(self.kf_pose[k][:3, 3] - self.kf_pose[k - 1][:3, 3])
-            self.floor.check_cues(k, odom.distance_m if self._odometry_usable(odom) else None, float(step), road_height)
+            self.floor.check_cues(k, odom.distance_m if self._odometry_usable(odom) else None, float(step), road_height,
+                                  self.road.revised)
         lap(Stage.BACKEND_FLOOR)
         self.lm.prune(w0)
         lap(Stage.BACKEND_ESTIMATE)
