@@ -586,8 +586,7 @@ def test_the_region_measures_only_where_the_corners_on_the_floor_are_few(most):
 
     cam, tex = _camera(), _texture(6, lane_lines=False)
     T0, T1 = _step()
-    # The set-up's pitch (no pitch search): every measured step tests the cues (the next test: a searched pitch).
-    cfg = BackendConfig(ground={"road_region": {"enabled": True, "max_floor_landmarks": most, "pitch_search_deg": 0.0}})
+    cfg = BackendConfig(ground={"road_region": {"enabled": True, "max_floor_landmarks": most}})
     road = RoadRegion(cam, cfg, _Floor(), {4: T0, 5: T1})
     img0, img1 = _render(cam, T0, tex), _render(cam, T1, tex)
     for n_tied, measured in ((40, most is None), (39, True)):

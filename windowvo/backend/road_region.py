@@ -24,7 +24,9 @@ change of the floor's image motion from the region's near rows to its far ones s
 pitched against ``T_base_cam``) when known, else the set-up's (the base's z axis); on a base rocking on its suspension,
 the window's mean of it seen from the step's first keyframe (``RoadRegion.level_floor``: the keyframe's rocking
 applied; the pitches are still pooled against the mount's normal). A step's sigma is ``sigma_fraction`` of its
-length (widened while its pitch is not yet tested, ``untested_pitch_deg``). Pixels whose gradient lies across their
+length. Until the pool can be tested (5 searches) a step's pitch is untested: with wheels the step is neither tied nor
+checked against them, but measured again on the pooled pitch once that is tested (``RoadRegion.after_update``);
+without, it is tied, its sigma widened by ``untested_pitch_deg``. Pixels whose gradient lies across their
 flow (a lane line along the motion) tell no length and may be left out (``min_gradient_alignment``). Masked pixels (``frontend`` masks: a bonnet, the robot's own body) are left out of the region in both images.
 The images are smoothed (``blur_px``) and, optionally, contrast-normalised (``normalise_px``: a bright lane line then
 weighs no more than the asphalt) before the region is sampled; image k is read between its pixels bilinearly, or
