@@ -572,6 +572,11 @@ class RoadRegionCue:
             c = self.cfg
             self._images.append((k, smoothed(image, c.blur_px, c.normalise_px, c.normalise_floor), mask))
 
+    def forget_before(self, k: int) -> None:
+        """Keyframe k's image and newer are all a step still to be measured needs (no untested step waits)."""
+        while self._images and self._images[0][0] < k:
+            self._images.popleft()
+
     def _kept(self, k: int) -> tuple[int, np.ndarray, np.ndarray | None] | None:
         return next((f for f in reversed(self._images) if f[0] == k), None)
 
@@ -706,12 +711,14 @@ class RoadRegion:
         self.pitch_deg = step.pitch_deg
         if not self.with_wheels:
             self.pending = [step]
+            self.cue.forget_before(k)
             return self.floor.camera_height_m / self.ratio
         if not self.cue.pitch_tested():
             self.untested = [*self.untested[1 - KEPT_IMAGES:], k]  # older ones' images are gone
             return None
         again = [self._measure(j, w0, search=False) for j in self.untested if (j - 1) in self.kf_pose]
         self.untested = []
+        self.cue.forget_before(k)
         self.pending = [s for s in again if s is not None and s.camera_m > 0] + [step]
         self.revised = {s.keyframe: self.floor.camera_height_m * s.estimate_camera_m / s.camera_m
                         for s in self.pending[:-1]}
