@@ -81,3 +81,19 @@ def test_a_wheel_gap_restarts_the_stretch_and_no_plane_tests_nothing():
 def test_the_threshold_is_the_chi_square_quantile():
     assert _check(confidence=0.95).threshold == pytest.approx(3.841, abs=1e-3)
     assert _check(confidence=0.99).threshold == pytest.approx(6.635, abs=1e-3)
+
+
+def test_lengths_measured_later_fill_the_stretchs_missing_heights():
+    """``revise``: keyframes whose floor height was missing (the region's step held back until its pitch was tested)
+    get the height their measured length implies against the estimate's step as stored; the next test counts them.
+    A keyframe that had a height keeps it."""
+    check = _check()
+    assert [check.observe(k, 0.2, 0.2, None) for k in range(1, 5)] == [None] * 4  # no height: nothing tested
+    check.revise({1: 0.21, 2: 0.21, 3: 0.21, 4: 0.21, 9: 0.5})  # the floor: each step 5% longer (9: not in it)
+    res = check.observe(5, 0.2, 0.2, None)
+    assert res is not None and res.disagreement == pytest.approx(0.05, abs=1e-9)  # the floor's 1.05 over the wheels'
+    kept = _check()
+    kept.observe(1, 0.2, 0.2, HEIGHT_M)
+    kept.revise({1: 0.3})
+    res = kept.observe(2, 0.2, 0.2, None)
+    assert res is not None and res.disagreement == pytest.approx(0.0, abs=1e-9)

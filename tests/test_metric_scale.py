@@ -233,7 +233,8 @@ def test_monocular_run_becomes_metric_when_the_floor_comes_into_view(seq_factory
 def test_floor_landmarks_on_kerbs_are_untied(seq_factory, tmp_path, use_odometry):
     """Many floor candidates of the kerb loop lie on the platforms, inside the plane fit's band at their birth;
     seen from later keyframes they stand out of the floor's heights and lose their ground factors
-    (``backend.ground.untie_sigmas``). Measured: with wheels 0.041 -> 0.017 m, without 0.097 -> 0.023 m.
+    (``backend.ground.untie_sigmas``). Measured when written (the region did not exist): with wheels 0.041 -> 0.017
+    m, without 0.097 -> 0.023 m.
 
     The floor's region is off in both runs, so that the comparison is of the floor points' untying alone: with it
     on, it measures the steps where the window ties few floor points, and since its pixel selection

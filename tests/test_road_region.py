@@ -567,6 +567,7 @@ class _Floor:
 
     use_ground = True
     camera_height_m = HEIGHT
+    cues = None  # no cue check
 
     def ground_active(self) -> bool:
         return True
@@ -576,6 +577,9 @@ class _Floor:
 
     def floor_offset(self, n_base) -> float:
         return 0.0
+
+    def ties_allowed(self) -> bool:
+        return True
 
 
 @pytest.mark.parametrize("most", [None, 40])
@@ -599,12 +603,12 @@ def test_the_region_measures_only_where_the_corners_on_the_floor_are_few(most):
 
 
 def test_steps_on_an_untested_pitch_are_measured_again_once_it_is_tested():
-    """With wheels (without, each step is tied as measured): the set-up's camera pitched 1 deg off its real mount, eight steps (``RoadRegion``, the defaults: the pitch
-    searched and pooled). The first MIN_PITCH_SEARCHES - 1 steps, measured on the set-up's pitch, are 3-10% off: each is
-    recorded (``ratio``) but neither tied (nothing pending) nor handed to the cue check (no height). At the step whose
-    search completes the pool, they are measured again on the pooled pitch and join it: every pending step then lies
-    within 1% of the true length, and the cue check gets their heights (``revised``, within 1% of the camera
-    height). From then on each step is pending alone."""
+    """With wheels (without, each step is tied as measured): the set-up's camera pitched 1 deg off its real mount,
+    eight steps (``RoadRegion``, the defaults: the pitch searched and pooled). The first MIN_PITCH_SEARCHES - 1 steps,
+    measured on the set-up's pitch, are 3-10% off: each is recorded (``ratio``) but neither tied (nothing pending) nor
+    handed to the cue check (no height). At the step whose search completes the pool, they are measured again on the
+    pooled pitch (without a search of their own) and join it: every pending step then lies within 1% of the true
+    length, and the cue check gets their lengths (``revised``). From then on each step is pending alone."""
     from dataclasses import replace as dc_replace
 
     from windowvo.backend.road_region import MIN_PITCH_SEARCHES, RoadRegion
@@ -628,6 +632,7 @@ def test_steps_on_an_untested_pitch_are_measured_again_once_it_is_tested():
             continue
         assert [s.keyframe for s in alone.pending] == [k] and alone.ratio == road.ratio
         assert np.isfinite(road.ratio)  # measured every time
+        assert road.cue is not None and road.cue.n_searches == k  # one search a step: none to measure again
         if k < MIN_PITCH_SEARCHES:
             assert height is None and road.pending == [] and road.revised == {}, k
             assert abs(road.ratio - 1.0) > 0.03, (k, road.ratio)  # the estimate's cameras are the true ones
@@ -638,4 +643,14 @@ def test_steps_on_an_untested_pitch_are_measured_again_once_it_is_tested():
             assert s.camera_m / _camera_distance(cam, T[s.keyframe - 1], T[s.keyframe]) == pytest.approx(1.0, abs=0.01)
         assert height == pytest.approx(HEIGHT, rel=0.01)
         assert sorted(road.revised) == want[:-1]
-        assert all(h == pytest.approx(HEIGHT, rel=0.01) for h in road.revised.values()), road.revised
+        for j, length in road.revised.items():  # the base's step in the estimate's frame, measured
+            assert length == pytest.approx(float(np.linalg.norm(est[j][:3, 3] - est[j - 1][:3, 3])), rel=0.01), j
+    # The pending steps become range factors, only those whose first pose lies after the window's first keyframe.
+    from windowvo.backend.factors import X as pose_key
+    from windowvo.backend.road_region import RoadStep
+
+    road.pending = [RoadStep(j, 0.25, 0.25, 0.25, 0.9, 500, 0.0, 0.03) for j in (3, 4, 5)]
+    graph = gtsam.NonlinearFactorGraph()
+    road.add_factor(graph, w0=3)
+    assert [graph.at(i).keys() for i in range(graph.size())] == [[pose_key(4), pose_key(5)]]
+    assert road.pending == [] and road.n_factors == 1

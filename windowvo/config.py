@@ -297,9 +297,10 @@ class RoadRegionConfig(_Section):
                                           "gradient's component along its motion in the image (the floor's flow "
                                           "between the keyframes) is at least this share of the gradient: a pixel on "
                                           "a lane line parallel to the motion tells nothing of the step's length and "
-                                          "biases the floor's pitch search (0: every pixel). The default since #26's "
-                                          "steps on an untested pitch wait for it with wheels: scale suite fused 0.83x "
-                                          "the 0's (docs/scale_suite.md, \"Steps on an untested pitch\")")
+                                          "biases the floor's pitch search (0: every pixel). 0.1: the scale suite's "
+                                          "fused runs 0.84x the 0's; with the untested steps' wait (wheels) 0.83x the "
+                                          "old defaults (docs/scale_suite.md, \"Steps on an untested pitch wait for "
+                                          "it with wheels, and the region's pixel selection as the default\")")
     search_direction_deg: float = Field(1.5, ge=0, lt=20, description="the step's direction is searched within this "
                                         "many degrees sideways of the estimate's, alternately with its length, so that "
                                         "the length does not take up the direction's error (0: the estimate's)")

@@ -87,13 +87,14 @@ class CueCheck:
             self.disagree_since = k
         return result
 
-    def revise(self, heights: dict[int, float]) -> None:
-        """Floor heights measured later for keyframes of the stretch (by keyframe) that had none (no plane fitted,
-        the region's step held back until its floor pitch was tested); the next test counts them."""
+    def revise(self, lengths_m: dict[int, float]) -> None:
+        """Steps of the stretch (by keyframe) whose metric length the floor measured later (the region's step held
+        back until its floor pitch was tested): a keyframe without a floor height gets the one the length implies
+        against the estimate's step as it was stored, ``h_known * estimate_m / length``; the next test counts it."""
         for i, s in enumerate(self._steps):
-            h = heights.get(s.keyframe)
-            if s.floor_height_m is None and h is not None:
-                self._steps[i] = replace(s, floor_height_m=h)
+            length = lengths_m.get(s.keyframe)
+            if s.floor_height_m is None and length is not None and length > 0:
+                self._steps[i] = replace(s, floor_height_m=self.camera_height_m * s.estimate_m / length)
 
     def floor_gated(self) -> bool:
         """Whether the floor's new points stay untied (``gate`` on): the cues disagree now, or they were never

@@ -155,15 +155,13 @@ class FloorModel:
         tested and agree (``CueCheck.floor_gated``)."""
         return not self.waiting_for_floor() and not (self.cues is not None and self.cues.floor_gated())
 
-    def check_cues(self, k: int, wheel_m: float | None, estimate_m: float, road_height_m: float | None = None,
-                   revised: dict[int, float] | None = None) -> None:
-        """Keyframe k's floor-against-wheels test (``cue_check.py``), logged when a disagreement starts and ends.
-        ``road_height_m``, ``revised``: the region's camera height now, and at earlier keyframes measured again."""
+    def check_cues(self, k: int, wheel_m: float | None, estimate_m: float, road_height_m: float | None = None) -> None:
+        """Keyframe k's test of floor against wheels (``cue_check.py``) after its update; logs when a disagreement
+        starts and ends. ``road_height_m``: the camera height the region implies where no plane was fitted."""
         if self.cues is None or not self.ground_active():
             return
         was_gated, first = self.cues.floor_gated(), not self.cues.tests
         height = self.fit_height_m if self.fit_height_m is not None else road_height_m
-        self.cues.revise(revised or {})
         self.last_agreement = a = self.cues.observe(k, wheel_m, estimate_m, height)
         if a is None:
             return

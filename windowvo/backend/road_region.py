@@ -544,8 +544,9 @@ def pooled_pitch(pitches: list[float], sigmas: float, systematic_deg: float = 0.
 
 
 class RoadRegionCue:
-    """The back end's side: keeps the last keyframe's image, measures each step once the window has estimated it,
-    and hands its range factor to the next update (both poses are still in the window then)."""
+    """The measurement's state between keyframes: the newest keyframes' smoothed images (``keep_image``), the pool
+    of pitch searches, and each step measured from them once the window has estimated it (``measure``); which steps
+    are tied, and when, is ``RoadRegion``'s."""
 
     def __init__(self, camera: CameraModel, cfg: RoadRegionConfig, T_base_cam: np.ndarray):
         self.camera, self.cfg, self.T_base_cam = camera, cfg, T_base_cam
@@ -635,9 +636,11 @@ class RoadRegionCue:
 
     def pitch_tested(self) -> bool:
         """The floor's pitch a step is measured on has been tested: the pool holds MIN_PITCH_SEARCHES searches (or
-        each step searches its own, or none is searched: the set-up's pitch is then the model)."""
+        each step searches its own, or none is searched, or the pool is too small ever to be tested,
+        ``pitch_window`` 2-4: the set-up's pitch is then the model)."""
         c = self.cfg
-        return c.pitch_search_deg <= 0 or c.pitch_window <= 1 or len(self.pitches) >= MIN_PITCH_SEARCHES
+        return (c.pitch_search_deg <= 0 or c.pitch_window < MIN_PITCH_SEARCHES
+                or len(self.pitches) >= MIN_PITCH_SEARCHES)
 
     def step_sigma_fraction(self, n_cam: np.ndarray, h: float) -> float:
         """A measured step's sigma as a share of its length: ``sigma_fraction``, widened while the floor's pitch is
@@ -677,7 +680,7 @@ class RoadRegion:
         self.n_factors = 0  # range factors added to the smoother
         self.pending: list[RoadStep] = []  # measured, their factors not yet in the smoother
         self.untested: list[int] = []  # keyframes whose steps were measured on an untested pitch: measured again
-        self.revised: dict[int, float] = {}  # those steps' camera heights once measured again (for the cue check)
+        self.revised: dict[int, float] = {}  # those steps' base lengths (m) once measured again (for the cue check)
 
     def after_update(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None,
                      n_floor_tied: int = 0, w0: int | None = None) -> float | None:
@@ -692,14 +695,16 @@ class RoadRegion:
         wheels: a pitch error moves its length 4-9% a degree (KITTI's set-up pitch, 1 deg off its road: 12-20%),
         more than the wheels' scale prior allows them (3%), so until its pitch is tested it could only pull the scale
         off. It is kept in ``untested`` and measured again, on the pooled pitch, at the keyframe whose search
-        completes the pool; its factor then joins that keyframe's (``pending``) and its height goes to the cue check
-        (``revised``). Without wheels it is tied as measured: nothing else tells the first steps' scale."""
+        completes the pool; its factor then joins that keyframe's (``pending``) and its length goes to the cue check
+        (``revised``, ``CueCheck.revise``). Without wheels it is tied as measured: nothing else tells the first steps' scale."""
         self.ratio = self.pitch_deg = float("nan")
         self.revised = {}
         self.pending = []
         if self.cue is None:
             return None
         self.cue.keep_image(k, image, mask)
+        if not self.untested:
+            self.cue.forget_before(k - 1)  # only the step to k needs an older image
         most = self.cfg.ground.road_region.max_floor_landmarks
         if (k == 0 or not self.floor.ground_active() or (k - 1) not in self.kf_pose
                 or (most is not None and n_floor_tied >= most)):
@@ -711,17 +716,16 @@ class RoadRegion:
         self.pitch_deg = step.pitch_deg
         if not self.with_wheels:
             self.pending = [step]
-            self.cue.forget_before(k)
             return self.floor.camera_height_m / self.ratio
         if not self.cue.pitch_tested():
-            self.untested = [*self.untested[1 - KEPT_IMAGES:], k]  # older ones' images are gone
+            self.untested = [*self.untested[2 - KEPT_IMAGES:], k]  # older ones' images are gone
             return None
         again = [self._measure(j, w0, search=False) for j in self.untested if (j - 1) in self.kf_pose]
         self.untested = []
-        self.cue.forget_before(k)
         self.pending = [s for s in again if s is not None and s.camera_m > 0] + [step]
-        self.revised = {s.keyframe: self.floor.camera_height_m * s.estimate_camera_m / s.camera_m
-                        for s in self.pending[:-1]}
+        self.revised = {s.keyframe: s.base_m for s in self.pending[:-1]}
+        if self.floor.cues is not None:  # the cue check's entries for those keyframes (before this one's test)
+            self.floor.cues.revise(self.revised)
         return self.floor.camera_height_m / self.ratio
 
     def _measure(self, k: int, w0: int | None, search: bool) -> RoadStep | None:

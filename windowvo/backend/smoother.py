@@ -351,8 +351,7 @@ class SlidingWindowBackend:
             self.floor.last_agreement = None  # a slipping step says nothing about the tyre's scale
         elif k > 0:
             step = np.linalg.norm(self.kf_pose[k][:3, 3] - self.kf_pose[k - 1][:3, 3])
-            self.floor.check_cues(k, odom.distance_m if self._odometry_usable(odom) else None, float(step), road_height,
-                                  self.road.revised)
+            self.floor.check_cues(k, odom.distance_m if self._odometry_usable(odom) else None, float(step), road_height)
         lap(Stage.BACKEND_FLOOR)
         self.lm.prune(w0)
         lap(Stage.BACKEND_ESTIMATE)
