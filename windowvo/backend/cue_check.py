@@ -10,8 +10,8 @@ Against the window's estimate, at each keyframe where both are measured over the
 * the floor says it is off by ``h_known / h_estimate`` (the known camera height against the height of the floor
   planes fitted in the estimate over the stretch, each keyframe's fit: ``FloorModel.floor_of``; where no plane is
   fitted, the height the floor's region implies, ``RoadRegion.after_update``, once the floor's pitch it is measured
-  on has been tested: a step measured before is measured again then, and its height added to its keyframe's test
-  entry, ``CueCheck.revise``).
+  on has been tested: a step measured before is measured again then, and the height its length implies is given to
+  its keyframe's entry of the stretch, ``CueCheck.revise``).
 
 Their ratio ``(D_estimate h_known) / (D_wheels h_estimate)`` does not depend on the estimate's scale, so it is a
 test of the cues, not of the fusion. Its log has the variance of the wheel scale's prior plus the floor height's

@@ -617,15 +617,13 @@ class RoadRegionCue:
         if self._pitch_from is None or float(pool @ self._pitch_from) < math.cos(1e-3):
             self.pitches.clear()
             self._pitch_from = pool
-        if not search:
-            pass
-        elif len(self.pitches) < max(1, c.pitch_window) or self._steps_since_search >= c.pitch_every - 1:
+        if search and (len(self.pitches) < max(1, c.pitch_window) or self._steps_since_search >= c.pitch_every - 1):
             self._steps_since_search = 0
             self.n_searches += 1
             fit = measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks, self._rays)
             if fit is not None:
                 self.pitches.append(fit.pitch_deg)
-        else:
+        elif search:  # a step measured again is no step of the search's count
             self._steps_since_search += 1
         if not self.pitches:
             return None
