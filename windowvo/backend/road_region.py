@@ -33,9 +33,17 @@ weighs no more than the asphalt) before the region is sampled; image k is read b
 bicubically (``interpolation``), which biases a warp's scale less (docs/scale_suite.md, "How the region samples its
 images").
 
+What the length rides on: the estimate's rotation between the two cameras. A longer step and the newer camera
+tilted down (about its x axis) both move the floor's pixels down the image, the first more on the near rows than the
+far ones, which is all that tells them apart: on a car's camera 0.1 deg of tilt is 2-6% of the length, and at ground
+truth's poses the rendered straight streets' steps scatter by 0.4% where at the run's estimate they scatter by 4%
+(``scripts/road_region_pose_study.py``). With ``tilt_ridge_deg``, on a base rocking on its suspension, the length is
+measured again with the camera tilted either way (``_tilt_slope``) and the step is tied along that ridge
+(``ridge_factor``): the window's tilt, refined after the step was measured, picks its length.
+
 The measurement (``measure_step``, ``RoadRegionCue``: which images, which step) is numpy and OpenCV, tested on its own
 (``tests/test_road_region.py``); ``RoadRegion`` is the smoother's side (when to measure, when its range factor may go
-in), and ``range_factor`` the one GTSAM factor.
+in), and ``range_factor`` and ``ridge_factor`` its GTSAM factors.
 """
 
 from __future__ import annotations
@@ -43,6 +51,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, replace
+from functools import partial
 
 import cv2
 import numpy as np
@@ -66,6 +75,9 @@ REFINE_ROUNDS = 3  # rounds of the alternating search (direction, length), each 
 # length and the pitch, the length's span at least PITCH_LENGTH_SPAN (log units) per radian of the pitch's span (the
 # ridge along which they trade: about 9% of length a degree on a car's camera).
 PITCH_LENGTH_SPAN = 12.0
+# The ridge of length and camera k's tilt (``_tilt_slope``): each side's length searched over this many log units per
+# radian of tilt either side of the step's (the ridge's slope on a car's camera: about 20 a radian).
+RIDGE_SPAN_PER_RAD = 60.0
 REMAP_COLS = 16384  # cv2.remap's map is folded into rows of this many points (it takes fewer than SHRT_MAX columns)
 MEMO_REGIONS = 8  # floor rays a cue keeps (one set per assumed floor)
 BLUR_SIGMA_PX = 1.0  # the images' smoothing before sampling by default (``road_region.blur_px``)
@@ -84,6 +96,8 @@ class RoadStep:
     n_pixels: int
     pitch_deg: float  # the floor's pitch the step found against the assumed normal (camera x axis)
     sigma_fraction: float  # its range factor's sigma as a share of its length (RoadRegionCue.step_sigma_fraction)
+    tilt_slope: float = 0.0  # d log(camera_m) / d(camera k's tilt, rad) along the ridge; 0: a plain range factor
+    R_cam0_cam1: np.ndarray | None = None  # the estimate's camera rotation when measured (what the tilt is against)
 
 
 @dataclass(frozen=True)
@@ -95,6 +109,7 @@ class StepFit:
     correlation: float
     n_pixels: int
     pitch_deg: float = 0.0
+    tilt_slope: float = 0.0  # d log(length) / d(camera k's tilt, rad) along the ridge (``tilt_ridge_deg``; 0: none)
 
 
 def floor_in_camera(T_base_cam: np.ndarray, n_base: np.ndarray, floor_offset: float) -> tuple[np.ndarray, float]:
@@ -179,6 +194,12 @@ class _Warp:
         # samples whose interpolation reads only image k's own pixels (bicubic: one more on the far sides)
         far = 2.0 if interpolation is RegionInterpolation.LINEAR else 3.0
         self.bounds = (1.0, camera.width - far, 1.0, camera.height - far)
+
+    def set_rotation(self, R: np.ndarray) -> None:
+        """The rotation of camera k against camera k-1 the warp takes (``X_k = R X_{k-1} + t``)."""
+        self.R = R
+        self.RX0 = self.X0 @ R.T
+        self.RX = self.RX0.astype(np.float32)
 
     def set_direction(self, t_dir: np.ndarray) -> None:
         self.tn = np.outer(self.nX, t_dir).astype(np.float32)  # t_dir (n . X) per point: s times it is the translation
@@ -437,7 +458,36 @@ def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadReg
     c_best = corr(p)
     if not inside or c_best < cfg.min_correlation:
         return None
-    return StepFit(float(np.exp(p[0])) * h, c_best, warp.n_last)
+    n_pixels = warp.n_last
+    slope = _tilt_slope(warp, rot_y(float(p[1])) @ t_dir, float(p[0]), cfg) if cfg.tilt_ridge_deg > 0 else 0.0
+    return StepFit(float(np.exp(p[0])) * h, c_best, n_pixels, tilt_slope=slope)
+
+
+def _tilt_slope(warp: _Warp, t_dir: np.ndarray, log_s: float, cfg: RoadRegionConfig) -> float:
+    """How the step's length trades with camera k's tilt about its x axis (rad): the best length with camera k
+    tilted by ``tilt_ridge_deg`` up and down (its centre kept), the slope of log length between the two (0 where a
+    side has no peak inside its search). A longer step and a camera tilted down both move the floor's pixels down
+    the image (the first more on the near rows than the far ones, which is all that tells them apart), so the
+    region measures the length well only at a given tilt: on a car's camera 0.15 deg of tilt is 3% of length."""
+    R0, d = warp.R, float(np.radians(cfg.tilt_ridge_deg))
+    ends = []
+    for w in (-d, d):
+        dR = rot_x(w)
+        warp.set_rotation(dR @ R0)
+        warp.set_direction(dR @ t_dir)
+        x0, span, ok = log_s, RIDGE_SPAN_PER_RAD * d, False
+        for _ in range(2):
+            xs = x0 + np.linspace(-span, span, 2 * FINE_STEPS + 1)
+            c = np.asarray(warp.correlations(np.exp(xs), warp.tn[None]))
+            i = int(np.argmax(c))
+            ok = 0 < i < len(xs) - 1
+            x0, span = _parabola_peak(xs, c, i), span / 6.0
+        ends.append(x0 if ok else None)
+    warp.set_rotation(R0)
+    warp.set_direction(t_dir)
+    if ends[0] is None or ends[1] is None:
+        return 0.0
+    return float((ends[1] - ends[0]) / (2.0 * d))
 
 
 def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig
@@ -510,6 +560,57 @@ def base_distance(T_base_cam: np.ndarray, T_world_cam0: np.ndarray, T_world_cam1
     return float(np.linalg.norm(T_b0_b1[:3, 3]))
 
 
+def _ridge_error(T_base_cam: np.ndarray, log_camera_m: float, slope: float, R_cam0_cam1: np.ndarray,
+                 this, values, H: list | None) -> np.ndarray:
+    """Residual of a step's length on the ridge it trades along with camera k's tilt: ``log |t| - log camera_m -
+    slope * tilt``, ``t`` the cameras' step and ``tilt`` camera k's turn about its x axis against the rotation the
+    step was measured at (``R_cam0_cam1``), both at the poses' values."""
+    import gtsam
+
+    k0, k1 = this.keys()
+    H1 = np.zeros((6, 6), order="F")
+    H2 = np.zeros((6, 6), order="F")
+    D = values.atPose3(k0).between(values.atPose3(k1), H1, H2)
+    Dm = D.matrix()
+    R_D, t_D = Dm[:3, :3], Dm[:3, 3]
+    R_bc, t_bc = T_base_cam[:3, :3], T_base_cam[:3, 3]
+    t_c = R_bc.T @ (R_D @ t_bc + t_D - t_bc)  # camera k's centre in camera k-1's frame
+    L = float(np.linalg.norm(t_c))
+    E = R_bc.T @ R_D.T @ R_bc @ R_cam0_cam1  # camera k's rotation now against the one measured at
+    H_log = np.zeros((3, 3), order="F")
+    tilt = float(gtsam.Rot3.Logmap(gtsam.Rot3(E), H_log)[0])
+    err = np.array([np.log(max(L, 1e-12)) - log_camera_m - slope * tilt])
+    if H is not None:
+        g = t_c / max(L * L, 1e-24)  # d log L / d t_c
+        # D's rotation turned by w turns camera k by R_bc^T w: E -> Exp(-R_bc^T w) E = E Exp(-E^T R_bc^T w)
+        d_tilt = -(H_log[0] @ E.T @ R_bc.T)
+        J = np.zeros((1, 6))
+        J[0, :3] = -(g @ R_bc.T @ R_D @ _skew(t_bc)) - slope * d_tilt  # D's rotation: the step and the tilt
+        J[0, 3:] = g @ R_bc.T @ R_D  # D's translation (GTSAM's Pose3 tangent: t' = t + R v)
+        H[0] = J @ H1
+        H[1] = J @ H2
+    return err
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def ridge_factor(key0: int, key1: int, step: RoadStep, T_base_cam: np.ndarray, robust_kind, robust_k: float):
+    """The step's length tied to the two base poses along the ridge it trades on with camera k's tilt
+    (``road_region.tilt_ridge_deg``): the region tells the length at a tilt, and the window's tilt (vision's,
+    refined after the step was measured) picks the length on it. Sigma ``sigma_fraction`` of the length (log units)."""
+    import gtsam
+
+    from .factors import robust
+
+    assert step.R_cam0_cam1 is not None
+    noise = robust(gtsam.noiseModel.Isotropic.Sigma(1, step.sigma_fraction), robust_kind, robust_k)
+    return gtsam.CustomFactor(noise, [key0, key1], partial(_ridge_error, np.asarray(T_base_cam, float),
+                                                          float(np.log(step.camera_m)), float(step.tilt_slope),
+                                                          np.asarray(step.R_cam0_cam1, float)))
+
+
 def range_factor(key0: int, key1: int, base_m: float, sigma_m: float, robust_kind, robust_k: float):
     """The step's length as a range factor between the two base poses (GTSAM's native ``RangeFactorPose3``)."""
     import gtsam
@@ -561,8 +662,11 @@ class RoadRegionCue:
         self.n_searches = 0  # pitch searches made (for the record and the tests)
         self._pitch_from: np.ndarray | None = None
         self._steps_since_search = 0
-        self._pitch_search = cfg.model_copy(update={"far_heights": cfg.pitch_far_heights})  # the pitch's region
-        self._on_pitch = cfg.model_copy(update={"pitch_search_deg": 0.0})  # a step's length on the pooled pitch
+        plain = cfg.model_copy(update={"tilt_ridge_deg": 0.0})  # no ridge: the length alone
+        self._pitch_search = plain.model_copy(update={"far_heights": cfg.pitch_far_heights})  # the pitch's region
+        self._on_pitch = plain.model_copy(update={"pitch_search_deg": 0.0})  # a step's length on the pooled pitch
+        self._on_pitch_ridge = cfg.model_copy(update={"pitch_search_deg": 0.0})  # ... and its ridge with the tilt
+        self._plain = plain
 
     def keep_image(self, k: int, image: np.ndarray | None, mask: np.ndarray | None = None) -> None:
         """Keyframe k's image (grey, as measured) and its usable pixels (0: masked; None: all); no image: the step
@@ -582,28 +686,31 @@ class RoadRegionCue:
         return next((f for f in reversed(self._images) if f[0] == k), None)
 
     def measure(self, k: int, T_world_base0: np.ndarray, T_world_base1: np.ndarray, n_base: np.ndarray,
-                floor_offset: float, pool_normal: np.ndarray | None = None, search: bool = True) -> RoadStep | None:
+                floor_offset: float, pool_normal: np.ndarray | None = None, search: bool = True,
+                ridge: bool = False) -> RoadStep | None:
         """The step k-1 -> k from the floor region, at the estimate's poses (after keyframe k's update), if both
         images are kept. ``n_base``, ``floor_offset``: the floor in keyframe k-1's base frame. ``pool_normal``: the
         floor's normal in the base frame the pitches are pooled against (default ``n_base``; a rocking base's
         levelled floor moves ``n_base`` at every step, not the pitch the searches find). ``search`` false: the
-        length on the pooled pitch alone, the pool untouched (a step measured again)."""
+        length on the pooled pitch alone, the pool untouched (a step measured again). ``ridge``: the length's trade
+        with camera k's tilt measured too (``tilt_ridge_deg``; ``RoadStep.tilt_slope``, ``ridge_factor``)."""
         img0, img1 = self._kept(k - 1), self._kept(k)
         if img0 is None or img1 is None:
             return None
         T_wc0, T_wc1 = T_world_base0 @ self.T_base_cam, T_world_base1 @ self.T_base_cam
         n_cam, h = floor_in_camera(self.T_base_cam, n_base, floor_offset)
         pool = n_cam if pool_normal is None else floor_in_camera(self.T_base_cam, pool_normal, 0.0)[0]
-        fit = self._fit(img0[1], img1[1], T_wc0, T_wc1, n_cam, h, (img0[2], img1[2]), pool, search)
+        fit = self._fit(img0[1], img1[1], T_wc0, T_wc1, n_cam, h, (img0[2], img1[2]), pool, search, ridge)
         if fit is None:
             return None
         return RoadStep(k, fit.camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, fit.camera_m),
                         float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])), fit.correlation, fit.n_pixels, fit.pitch_deg,
-                        self.step_sigma_fraction(n_cam, h))
+                        self.step_sigma_fraction(n_cam, h), fit.tilt_slope,
+                        (np.linalg.inv(T_wc0) @ T_wc1)[:3, :3])
 
     def _fit(self, img0: np.ndarray, img1: np.ndarray, T_wc0: np.ndarray, T_wc1: np.ndarray, n_cam: np.ndarray,
              h: float, masks: tuple[np.ndarray | None, np.ndarray | None], pool: np.ndarray,
-             search: bool = True) -> StepFit | None:
+             search: bool = True, ridge: bool = False) -> StepFit | None:
         """The step's fit: its own (``pitch_window`` 1, or the pitch not searched), or its length searched again on
         the pitch pooled over the last ``pitch_window`` searches (their median; searched at every step until the pool
         is full, then at every ``pitch_every``-th: one more search then moves the median little, and the search is
@@ -611,7 +718,8 @@ class RoadRegionCue:
         frame, the floor's attitude learnt, starts the pool over). ``search`` false: no search, the pool as it is."""
         c = self.cfg
         if c.pitch_search_deg <= 0:
-            return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, c, self.grid, masks, self._rays)
+            return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, c if ridge else self._plain,
+                                self.grid, masks, self._rays)
         if c.pitch_window <= 1:
             return measure_step(self.camera, img0, img1, T_wc0, T_wc1, n_cam, h, self._pitch_search, self.grid, masks, self._rays)
         if self._pitch_from is None or float(pool @ self._pitch_from) < math.cos(1e-3):
@@ -629,7 +737,7 @@ class RoadRegionCue:
             return None
         pooled = pooled_pitch(list(self.pitches), c.pitch_sigmas, c.pitch_systematic_deg)
         on = measure_step(self.camera, img0, img1, T_wc0, T_wc1, rot_x(np.radians(pooled)) @ n_cam, h,
-                          self._on_pitch, self.grid, masks, self._rays)
+                          self._on_pitch_ridge if ridge else self._on_pitch, self.grid, masks, self._rays)
         return None if on is None else replace(on, pitch_deg=pooled)
 
     def pitch_tested(self) -> bool:
@@ -735,7 +843,15 @@ class RoadRegion:
         if level is not None:
             n = level
         return self.cue.measure(k, self.kf_pose[k - 1], self.kf_pose[k], n_mount if n is None else n,
-                                self.floor.floor_offset(n), n_mount, search=search)
+                                self.floor.floor_offset(n), n_mount, search=search, ridge=self.base_rocks())
+
+    def base_rocks(self) -> bool:
+        """The base rocks on its suspension (the floor model's test at its last plane fit: the window's keyframes
+        tilting by more than ``ground.rocking_jitter_deg`` between keyframes): the tilt between two keyframes is
+        then the suspension's, a degree and more, and vision's estimate of it when a step is measured is off by a
+        tenth of a degree (the rendered rocking rooms), which the region's length takes up at 2-6% (``ridge_factor``)."""
+        jitter = self.cfg.ground.rocking_jitter_deg
+        return jitter is not None and bool(self.floor.base_rocking_deg > jitter)
 
     def level_floor(self, k: int, w0: int, n_mount: np.ndarray) -> np.ndarray | None:
         """The floor's normal in keyframe k-1's base frame when the base rocks on its suspension, else None (the
@@ -775,9 +891,13 @@ class RoadRegion:
         for step in steps:
             if step.keyframe - 1 <= w0:
                 continue
-            graph.add(range_factor(X(step.keyframe - 1), X(step.keyframe), step.base_m,
-                                   step.sigma_fraction * step.base_m, self.cfg.ground.robust,
-                                   threshold(r.robust_k, 1, self.cfg)))
+            if step.tilt_slope != 0.0 and self.cue is not None:
+                graph.add(ridge_factor(X(step.keyframe - 1), X(step.keyframe), step, self.cue.T_base_cam,
+                                       self.cfg.ground.robust, threshold(r.robust_k, 1, self.cfg)))
+            else:
+                graph.add(range_factor(X(step.keyframe - 1), X(step.keyframe), step.base_m,
+                                       step.sigma_fraction * step.base_m, self.cfg.ground.robust,
+                                       threshold(r.robust_k, 1, self.cfg)))
             self.n_factors += 1
 
     def forget(self) -> None:
