@@ -5,7 +5,7 @@
 ``SEQUENCE``: a rendered sequence (``camera.yaml``, ``images/``, ``groundtruth.txt``, e.g. a scale suite render);
 ``RUN_DIR``: a run of it (``stats.csv``, ``trajectory_online.txt``, ``trajectory.txt``). Each keyframe step of the run
 is measured as the back end's cue measures it (``RoadRegionCue``: the pooled pitch, the defaults of
-``backend.ground.road_region`` with ``--set road_region.KEY=VALUE``) at the poses of
+``backend.ground.road_region`` with ``--set KEY=VALUE``, a key of that section) at the poses of
 
 * ground truth,
 * the run's online estimate (the poses the back end measured the step at, near enough),
@@ -13,7 +13,8 @@ is measured as the back end's cue measures it (``RoadRegionCue``: the pooled pit
 
 and the measured camera distance is printed against ground truth's: median, standard deviation, interquartile half
 width. With ``tilt_ridge_deg`` the estimate's step is also taken along its ridge with the camera's tilt
-(``ridge_factor``) at the final trajectory's tilt and at ground truth's. Read-only; the numbers of
+(``ridge_factor``) at the final trajectory's tilt and at ground truth's (the steps whose ridge was measured: they
+may be fewer than the estimate's). Read-only; the numbers of
 docs/scale_suite.md ("The region's step rides on the estimate's tilt") came from it.
 """
 
@@ -27,6 +28,7 @@ from pathlib import Path
 import cv2
 import gtsam
 import numpy as np
+from pydantic import ValidationError
 
 from windowvo.backend.road_region import RoadRegionCue
 from windowvo.config import RoadRegionConfig
@@ -81,8 +83,15 @@ def main() -> int:
     args = ap.parse_args()
     try:
         cam = read_camera_yaml(args.sequence / "camera.yaml")
+        bad = [kv for kv in args.set if "=" not in kv]
+        if bad:
+            raise ValueError(f"--set takes KEY=VALUE, got {bad[0]!r}")
         over = dict(kv.split("=", 1) for kv in args.set)
-        cfg = RoadRegionConfig.model_validate({"enabled": True, **over})
+        try:
+            cfg = RoadRegionConfig.model_validate({"enabled": True, **over})
+        except ValidationError as err:
+            e = err.errors()[0]
+            raise ValueError(f"--set {'.'.join(map(str, e['loc']))}: {e['msg']}") from None
         truth = read_tum(args.sequence / "groundtruth.txt")
         online, final = read_tum(args.run / "trajectory_online.txt"), read_tum(args.run / "trajectory.txt")
         with open(args.run / "stats.csv", newline="") as f:

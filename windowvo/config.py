@@ -310,9 +310,11 @@ class RoadRegionConfig(_Section):
                                   "step and a camera tilted down move the floor's pixels alike (2-6% of length per "
                                   "0.1 deg), so the step is tied to the two poses along that ridge, its length "
                                   "taken at the window's tilt instead of the estimate's when it was measured "
-                                  "(backend/road_region.py, ridge_factor). 0 (default): the length alone (a range "
-                                  "factor). 0.1 was measured: rocking rooms and warehouses 0.73-0.83x fused, rocking "
-                                  "straight streets 1.7-2.3x worse (docs/scale_suite.md)")
+                                  "(backend/road_region.py, ridge_factor; the steps measured on a pooled or the "
+                                  "assumed pitch: not with pitch_window 1 and a pitch search). 0 (default): the "
+                                  "length alone (a range factor). 0.1 was measured: the scale suite's rocking runs "
+                                  "fused 0.73-0.77x but a rocking straight street 2.28x; held out, rocking "
+                                  "warehouses 0.83x, streets 0.97x (worst 1.70x), rooms 1.03x (docs/scale_suite.md)")
     pitch_search_deg: float = Field(2.0, ge=0, lt=10, description="the floor's pitch against the camera is searched "
                                     "within this many degrees of the assumed one (the floor's learnt normal or the "
                                     "set-up's), jointly with the length: a road's slope ahead differs from the slope "

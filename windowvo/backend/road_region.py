@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import cv2
@@ -97,7 +97,8 @@ class RoadStep:
     pitch_deg: float  # the floor's pitch the step found against the assumed normal (camera x axis)
     sigma_fraction: float  # its range factor's sigma as a share of its length (RoadRegionCue.step_sigma_fraction)
     tilt_slope: float = 0.0  # d log(camera_m) / d(camera k's tilt, rad) along the ridge; 0: a plain range factor
-    R_cam0_cam1: np.ndarray | None = None  # the estimate's camera rotation when measured (what the tilt is against)
+    # the estimate's camera rotation when measured (what the tilt is against); not compared (an array)
+    R_cam0_cam1: np.ndarray | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)
@@ -466,7 +467,7 @@ def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadReg
 def _tilt_slope(warp: _Warp, t_dir: np.ndarray, log_s: float, cfg: RoadRegionConfig) -> float:
     """How the step's length trades with camera k's tilt about its x axis (rad): the best length with camera k
     tilted by ``tilt_ridge_deg`` up and down (its centre kept), the slope of log length between the two (0 where a
-    side has no peak inside its search). A longer step and a camera tilted down both move the floor's pixels down
+    side has no peak inside either round of its search, or correlates below ``min_correlation`` there). A longer step and a camera tilted down both move the floor's pixels down
     the image (the first more on the near rows than the far ones, which is all that tells them apart), so the
     region measures the length well only at a given tilt: on a car's camera 0.15 deg of tilt is 3% of length."""
     R0, d = warp.R, float(np.radians(cfg.tilt_ridge_deg))
@@ -475,12 +476,12 @@ def _tilt_slope(warp: _Warp, t_dir: np.ndarray, log_s: float, cfg: RoadRegionCon
         dR = rot_x(w)
         warp.set_rotation(dR @ R0)
         warp.set_direction(dR @ t_dir)
-        x0, span, ok = log_s, RIDGE_SPAN_PER_RAD * d, False
+        x0, span, ok = log_s, RIDGE_SPAN_PER_RAD * d, True
         for _ in range(2):
             xs = x0 + np.linspace(-span, span, 2 * FINE_STEPS + 1)
             c = np.asarray(warp.correlations(np.exp(xs), warp.tn[None]))
             i = int(np.argmax(c))
-            ok = 0 < i < len(xs) - 1
+            ok = ok and 0 < i < len(xs) - 1 and bool(c[i] >= cfg.min_correlation)
             x0, span = _parabola_peak(xs, c, i), span / 6.0
         ends.append(x0 if ok else None)
     warp.set_rotation(R0)
@@ -891,7 +892,7 @@ class RoadRegion:
         for step in steps:
             if step.keyframe - 1 <= w0:
                 continue
-            if step.tilt_slope != 0.0 and self.cue is not None:
+            if np.isfinite(step.tilt_slope) and step.tilt_slope != 0.0 and self.cue is not None:
                 graph.add(ridge_factor(X(step.keyframe - 1), X(step.keyframe), step, self.cue.T_base_cam,
                                        self.cfg.ground.robust, threshold(r.robust_k, 1, self.cfg)))
             else:
