@@ -75,12 +75,12 @@ def summary(name: str, ratios: list[float]) -> str:
             f"{50 * (q3 - q1):.2f}% |")
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sequence", type=Path)
     ap.add_argument("run", type=Path)
     ap.add_argument("--set", action="append", default=[], metavar="K=V", help="a road_region key (repeatable)")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     try:
         cam = read_camera_yaml(args.sequence / "camera.yaml")
         bad = [kv for kv in args.set if "=" not in kv]
