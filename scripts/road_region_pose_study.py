@@ -34,19 +34,15 @@ from windowvo.backend.road_region import RoadRegionCue
 from windowvo.config import RoadRegionConfig
 from windowvo.errors import WindowVOError
 from windowvo.io.sequence import read_camera_yaml
+from windowvo.io.trajectory import read_tum
 
 MODES = ("ground truth", "estimate", "estimate, rotation from truth", "estimate, direction from truth")
 
 
-def read_tum(path: Path) -> dict[float, np.ndarray]:
-    """A TUM trajectory (t tx ty tz qx qy qz qw) as 4x4 poses by time (rounded to 0.1 ms)."""
-    out = {}
-    for r in np.loadtxt(path, comments="#", ndmin=2):
-        T = np.eye(4)
-        T[:3, :3] = gtsam.Rot3.Quaternion(r[7], r[4], r[5], r[6]).matrix()
-        T[:3, 3] = r[1:4]
-        out[round(float(r[0]), 4)] = T
-    return out
+def poses_by_time(path: Path) -> dict[float, np.ndarray]:
+    """A TUM trajectory's poses (``io.trajectory.read_tum``) by time, rounded to 0.1 ms (as ``stats.csv`` gives it)."""
+    traj = read_tum(path)
+    return {round(float(t), 4): T for t, T in zip(traj.timestamps, traj.T_world_base)}
 
 
 def step_in(mode: str, D_truth: np.ndarray, D_est: np.ndarray) -> np.ndarray:
@@ -92,8 +88,9 @@ def main(argv: list[str] | None = None) -> int:
         except ValidationError as err:
             e = err.errors()[0]
             raise ValueError(f"--set {'.'.join(map(str, e['loc']))}: {e['msg']}") from None
-        truth = read_tum(args.sequence / "groundtruth.txt")
-        online, final = read_tum(args.run / "trajectory_online.txt"), read_tum(args.run / "trajectory.txt")
+        truth = poses_by_time(args.sequence / "groundtruth.txt")
+        online = poses_by_time(args.run / "trajectory_online.txt")
+        final = poses_by_time(args.run / "trajectory.txt")
         with open(args.run / "stats.csv", newline="") as f:
             rows = [r for r in csv.DictReader(f) if r["is_keyframe"] in ("True", "true", "1")]
         images = sorted((args.sequence / "images").iterdir())

@@ -586,15 +586,12 @@ def _ridge_error(T_base_cam: np.ndarray, log_camera_m: float, slope: float, R_ca
         # D's rotation turned by w turns camera k by R_bc^T w: E -> Exp(-R_bc^T w) E = E Exp(-E^T R_bc^T w)
         d_tilt = -(H_log[0] @ E.T @ R_bc.T)
         J = np.zeros((1, 6))
-        J[0, :3] = -(g @ R_bc.T @ R_D @ _skew(t_bc)) - slope * d_tilt  # D's rotation: the step and the tilt
-        J[0, 3:] = g @ R_bc.T @ R_D  # D's translation (GTSAM's Pose3 tangent: t' = t + R v)
+        u = g @ R_bc.T @ R_D  # d log L / d(D's translation) (GTSAM's Pose3 tangent: t' = t + R v)
+        J[0, :3] = np.cross(t_bc, u) - slope * d_tilt  # D's rotation (R Exp(w) t_bc: u . (w x t_bc)) and the tilt
+        J[0, 3:] = u
         H[0] = J @ H1
         H[1] = J @ H2
     return err
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def ridge_factor(key0: int, key1: int, step: RoadStep, T_base_cam: np.ndarray, robust_kind, robust_k: float):
@@ -707,7 +704,7 @@ class RoadRegionCue:
         return RoadStep(k, fit.camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, fit.camera_m),
                         float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])), fit.correlation, fit.n_pixels, fit.pitch_deg,
                         self.step_sigma_fraction(n_cam, h), fit.tilt_slope,
-                        (np.linalg.inv(T_wc0) @ T_wc1)[:3, :3])
+                        (np.linalg.inv(T_wc0) @ T_wc1)[:3, :3] if fit.tilt_slope != 0.0 else None)
 
     def _fit(self, img0: np.ndarray, img1: np.ndarray, T_wc0: np.ndarray, T_wc1: np.ndarray, n_cam: np.ndarray,
              h: float, masks: tuple[np.ndarray | None, np.ndarray | None], pool: np.ndarray,
