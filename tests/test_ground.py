@@ -218,19 +218,23 @@ def _drifted_floor_of(be: SlidingWindowBackend, scale: float, rng: np.random.Gen
     return mask, fit, len(floor)
 
 
-@pytest.mark.parametrize("use_odometry", [False, True])
-def test_a_monocular_run_takes_the_floor_back_after_its_scale_drifted(use_odometry):
+@pytest.mark.parametrize("use_odometry,reanchor", [(False, True), (True, True), (False, False)])
+def test_a_monocular_run_takes_the_floor_back_after_its_scale_drifted(use_odometry, reanchor):
     """Without wheels the floor is the only scale source: a floor plane at the same wrong height at two
     consecutive keyframes is the floor seen at a drifted scale, and is taken back (its ground factors then
     pull the scale back); two planes that disagree are not (one could be a table top). With wheels the
-    scale is theirs: a plane at the wrong height is never floor."""
+    scale is theirs: a plane at the wrong height is never floor; nor without them when the re-anchoring is
+    switched off (``ground.reanchor_drifted_floor``)."""
     spec = SynthSpec(path=PathKind.LOOP, duration_s=2.0, seed=1)
-    be = SlidingWindowBackend(camera_for(spec), BackendConfig(), use_odometry=use_odometry)
+    cfg = BackendConfig()
+    cfg.ground.reanchor_drifted_floor = reanchor
+    be = SlidingWindowBackend(camera_for(spec), cfg, use_odometry=use_odometry)
+    takes_back = reanchor and not use_odometry
     be.metric = True  # as after the monocular start
     rng = np.random.default_rng(3)
     mask, fit, n_floor = _drifted_floor_of(be, 1.0, rng)  # the right scale: the floor, either way
     assert fit is not None and mask[:n_floor].mean() > 0.5 and not mask[n_floor:].any()
-    for scale, taken in ((0.65, False), (1.9, False), (1.9, not use_odometry), (1.85, not use_odometry)):
+    for scale, taken in ((0.65, False), (1.9, False), (1.9, takes_back), (1.85, takes_back)):
         mask, fit, n_floor = _drifted_floor_of(be, scale, rng)
         assert (fit is not None) == taken, scale
         if taken:
@@ -238,7 +242,7 @@ def test_a_monocular_run_takes_the_floor_back_after_its_scale_drifted(use_odomet
             assert mask[:n_floor].mean() > 0.5 and not mask[n_floor:].any()
         else:
             assert not mask.any()
-    assert be.n_scale_reanchors == (0 if use_odometry else 2)
+    assert be.n_scale_reanchors == (2 if takes_back else 0)
 
 
 def test_wheel_calibration_correct_removes_scale_and_bias():

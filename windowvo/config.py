@@ -469,6 +469,12 @@ class GroundConfig(_Section):
         "more: a surface just above the floor, kerbs, pavements, mats, that the plane fit took for it), those beyond "
         "it on either side lose their ground factors and keep their projections. Level-frame ground factors (a "
         "rocking base) are not judged. null: never")
+    reanchor_drifted_floor: bool = Field(
+        True, description="without wheels (the floor the run's only scale source), a floor plane found at the same "
+        "wrong height at two consecutive keyframes is the floor seen at a drifted scale (it was out of view while "
+        "the monocular scale drifted) and is tied again, pulling the scale back; false: a plane off the camera "
+        "height is never floor. Measured off on the scale suite's floor-only runs: 1.19x, a rocking street's "
+        "0.39 -> 35 m (docs/scale_suite.md, \"The heuristics measured again\")")
     road_region: RoadRegionConfig = Field(RoadRegionConfig(), description="the floor measured by region: each "
                                           "keyframe step's length from the floor's pixels")
 

@@ -222,7 +222,7 @@ class FloorModel:
         old_pts = self.lm.positions()[1]
         pts = np.concatenate([new_pts, old_pts])
         mask, fit = floor_mask(pts, T_guess, self.T_base_cam, self.camera_height_m, self.cfg.ground, self._rng)
-        if fit is None and not self.use_odometry:
+        if fit is None and not self.use_odometry and self.cfg.ground.reanchor_drifted_floor:
             mask, fit = self._floor_after_scale_drift(k, pts, T_guess)
         else:
             self._drift_height = None
