@@ -1,6 +1,7 @@
 """Study (issue #26): two settings compared on rendered sequences the scale suite does not hold.
 
     python scripts/road_region_seeds.py --work DIR [--cases region|slip|streets|kitti|rocking] [--jobs 2] [--base K=V ...] [--set K=V ...]
+        [--seeds N] [--renders DIR]
 
 ``--cases region`` (the default; item 2, ``backend.ground.road_region``): renders 13 sequences (rooms and
 warehouses 10 s, streets 8 s, wheels -2% to +2%, seeds 121-123, 221-226, 331-334) into DIR and runs each fused and
@@ -16,7 +17,11 @@ ridge with the camera's tilt and without (``road_region.tilt_ridge_deg``).
 does not hold (-2%, -1%, +1%, +3%; its yaw bias), each run fused and wheels only (the second the same in both
 settings: what the fused run must not be worse than).
 ``--base`` against ``--set``: any two settings instead. Prints each ATE SE(3) and the ratios' geometric mean and
-worst per scene.
+worst per scene. ``--seeds N``: the ways that use the floor (fused, floor only) run with the floor plane's RANSAC
+seeds 0 .. N-1 (``backend.ground.seed``, after the settings' own overrides, as the scale suite's ``--seeds``) and each
+ATE is the median of the N runs: one run of a street moves by 2-4x with a fraction of a per cent in a step, and the
+median judges a change by more than which corners one seed picked. ``--renders DIR``: where the sequences are rendered and read from (default
+``--work``), so that studies with their own ``--work`` share one set of renders.
 """
 
 from __future__ import annotations
@@ -87,10 +92,26 @@ STUDIES = {"region": (CASES, ("fused", "floor"), OFF, ON), "slip": (SLIP_CASES, 
            "rocking": (ROCKING_CASES, ("fused", "floor"), RIDGE_OFF, RIDGE_ON)}
 
 
-def run_case(args: tuple[Path, tuple, tuple[str, ...], tuple[str, ...], tuple[str, ...]]
+def run_seeds(way: str, seeds: int, seeded_ways: tuple[str, ...]) -> list[int | None]:
+    """The floor RANSAC seeds one way of one setting runs with: 0 .. seeds-1 for a way that uses the floor, when
+    ``seeds`` is above 1; else one run at the config's seed (None)."""
+    return list(range(seeds)) if seeds > 1 and way in seeded_ways else [None]
+
+
+def median(xs: list[float]) -> float:
+    """The median of the finite values (nan if none: a run without an ATE)."""
+    v = sorted(x for x in xs if math.isfinite(x))
+    n = len(v)
+    if n == 0:
+        return float("nan")
+    return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
+
+
+def run_case(args: tuple[Path, Path, tuple, tuple[str, ...], tuple[str, ...], tuple[str, ...], int]
              ) -> tuple[str, list[float]]:
-    """ATE SE(3) of (first way base, first way set, second way base, second way set)."""
-    work, (scene, path, seed, scale, yaw, *extra), ways, base, new = args
+    """ATE SE(3) of (first way base, first way set, second way base, second way set), each the median over the
+    seeds' runs."""
+    work, renders, (scene, path, seed, scale, yaw, *extra), ways, base, new, seeds = args
     slip, vibration_deg = (extra[0] if extra else []), (extra[1] if len(extra) > 1 else 0.0)
     logging.disable(logging.WARNING)
     from windowvo.config import config_from_dict
@@ -110,22 +131,32 @@ def run_case(args: tuple[Path, tuple, tuple[str, ...], tuple[str, ...], tuple[st
     ates = []
     for way in ways:
         for arm, overrides in (("base", base), ("set", new)):
-            data = ss.case_config(case, work, work / "out" / arm, way, overrides)
-            rep = run_job(config_from_dict(data))
-            ates.append(rep.accuracy.ate_se3_rmse_m if rep.accuracy is not None else float("nan"))
+            runs = []
+            for seed_i in run_seeds(way, seeds, ss.SEEDED_WAYS):
+                rep = run_job(config_from_dict(ss.case_config(case, renders, work / "out" / arm, way, overrides,
+                                                              seed_i)))
+                runs.append(rep.accuracy.ate_se3_rmse_m if rep.accuracy is not None else float("nan"))
+            ates.append(median(runs))
     return case.name, ates
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--work", type=Path, required=True, help="folder for the renders and the runs")
+    ap.add_argument("--work", type=Path, required=True, help="folder for the runs (and the renders)")
+    ap.add_argument("--renders", type=Path, help="folder the sequences are rendered into and read from (default: "
+                    "--work)")
+    ap.add_argument("--seeds", type=int, default=1, help="the floor's RANSAC seeds each fused and floor-only ATE is "
+                    "the median over (default 1: one run)")
     ap.add_argument("--cases", choices=sorted(STUDIES), default="region", help="which study's sequences")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--base", action="append", metavar="K=V", help="the first setting's overrides (repeatable; "
                     "default: the region off, or the slip switch off)")
     ap.add_argument("--set", action="append", metavar="K=V", help="the second's (default: the region on, or the "
                     "slip switch on)")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    if args.seeds < 1:
+        print(f"road_region_seeds.py: error: --seeds must be at least 1 (got {args.seeds})", file=sys.stderr)
+        return 2
     cases, ways, off, on = STUDIES[args.cases]
     if args.cases == "kitti" and not all((SHARED_DATA / n).is_dir() for n in KITTI_EXCERPTS):
         print(f"road_region_seeds.py: error: the KITTI excerpts are not in {SHARED_DATA}", file=sys.stderr)
@@ -133,12 +164,15 @@ def main() -> int:
     base, new = tuple(args.base or off), tuple(args.set or on)
     from windowvo.tools.scale_suite import study_args_error
 
-    err = study_args_error(args.work, base, new)
+    renders = args.renders if args.renders is not None else args.work
+    err = study_args_error(args.work, base, new) or study_args_error(renders)
     if err is not None:
         print(f"road_region_seeds.py: error: {err}", file=sys.stderr)
         return 2
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
-        results = list(ex.map(run_case, [(args.work, c, ways, base, new) for c in cases]))
+        results = list(ex.map(run_case, [(args.work, renders, c, ways, base, new, args.seeds) for c in cases]))
+    if args.seeds > 1:
+        print(f"(fused and floor only: each the median of {args.seeds} seeds of the floor's RANSAC)")
     for name, (f0, f1, g0, g1) in results:
         print(f"{name:28s} {ways[0]} {f0:.3f} -> {f1:.3f} ({f1 / f0:.2f}x)  {ways[1]} only {g0:.3f} -> {g1:.3f} "
               f"({g1 / g0:.2f}x)")
