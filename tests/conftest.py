@@ -20,6 +20,18 @@ from windowvo.synth.generate import SynthSpec, generate_sequence, pixels_spec
 from windowvo.synth.paths import PathKind
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def load_script(name: str):
+    """The study script ``scripts/<name>.py`` as a module (its ``main(argv)`` and helpers, for its tests)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def _shared_root(tmp_path_factory) -> Path:

@@ -3,23 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-from pathlib import Path
 
 import pytest
+from conftest import SHARED_DATA, load_script
 
 from windowvo.config import RoadRegionConfig
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED_DATA = ROOT.parent / "shared" / "data"
-
 
 def _script():
-    spec = importlib.util.spec_from_file_location("road_region_at_truth", ROOT / "scripts" / "road_region_at_truth.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("road_region_at_truth")
 
 
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):

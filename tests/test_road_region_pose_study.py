@@ -3,21 +3,12 @@ study tool)."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import load_script
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("road_region_pose_study",
-                                                  ROOT / "scripts" / "road_region_pose_study.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("road_region_pose_study")
 
 
 def test_bad_input_is_one_line_and_exit_2(tmp_path, short_loop, capsys):
