@@ -20,8 +20,8 @@ settings: what the fused run must not be worse than).
 worst per scene. ``--seeds N``: the ways that use the floor (fused, floor only) run with the floor plane's RANSAC
 seeds 0 .. N-1 (``backend.ground.seed``, after the settings' own overrides, as the scale suite's ``--seeds``) and each
 ATE is the median of the N runs: one run of a street moves by 2-4x with a fraction of a per cent in a step, and the
-median judges a change by more than which corners one seed picked. ``--renders DIR``: where the sequences are rendered and read from (default
-``--work``), so that studies with their own ``--work`` share one set of renders.
+median judges a change by more than which corners one seed picked. ``--renders DIR``: where the sequences are
+rendered and read from (default ``--work``), so that studies with their own ``--work`` share one set of renders.
 """
 
 from __future__ import annotations
