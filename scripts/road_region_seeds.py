@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import statistics
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -100,11 +101,8 @@ def run_seeds(way: str, seeds: int, seeded_ways: tuple[str, ...]) -> list[int | 
 
 def median(xs: list[float]) -> float:
     """The median of the finite values (nan if none: a run without an ATE)."""
-    v = sorted(x for x in xs if math.isfinite(x))
-    n = len(v)
-    if n == 0:
-        return float("nan")
-    return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
+    finite = [x for x in xs if math.isfinite(x)]
+    return statistics.median(finite) if finite else float("nan")
 
 
 def run_case(args: tuple[Path, Path, tuple, tuple[str, ...], tuple[str, ...], tuple[str, ...], int]
