@@ -117,6 +117,41 @@ def test_the_step_length_is_measured_from_an_estimate_off_by_a_fifth(start):
     assert abs(got.pitch_deg) < 0.3, got  # the floor is where the set-up says
 
 
+@pytest.mark.parametrize("pitch_search_deg", [0.0, 2.0])
+@pytest.mark.parametrize("start", [0.45, 2.2])
+def test_a_step_far_off_the_estimate_is_measured_once_the_search_moves_out(start, pitch_search_deg):
+    """``monocular_search_shifts``: the estimate's step 0.45x or 2.2x the true one (a monocular run's scale drifted)
+    lies beyond the coarse search's +-42%: not measured without the moved grid, within 0.5% with it."""
+    cam, tex = _camera(), _texture(1, lane_lines=False)
+    T0, T1 = _step()
+    d = _camera_distance(cam, T0, T1)
+    T_est = T1.copy()
+    T_est[:3, 3] = T0[:3, 3] + start * (T1[:3, 3] - T0[:3, 3])
+    fixed, moved = (_measure(cam, T0, T1, tex, T_est, RoadRegionConfig(
+        enabled=True, pitch_search_deg=pitch_search_deg, monocular_search_shifts=shifts)) for shifts in (0, 2))
+    assert fixed is None
+    assert moved is not None and abs(moved.camera_m / d - 1.0) < 0.005, (moved, d)
+
+
+def test_with_wheels_the_search_is_not_moved_out():
+    """The calibrated wheels bound the estimate's step: a step 2.2x off it is a slipping wheel, not measured."""
+    from windowvo.backend.road_region import RoadRegion
+
+    cam, tex = _camera(), _texture(1, lane_lines=False)
+    T0, T1 = _step()
+    T_est = T1.copy()
+    T_est[:3, 3] = T0[:3, 3] + 2.2 * (T1[:3, 3] - T0[:3, 3])
+    cfg = BackendConfig(ground={"road_region": {"enabled": True, "monocular_search_shifts": 2, "pitch_window": 1}})
+    img0, img1 = _render(cam, T0, tex), _render(cam, T1, tex)
+    for with_wheels in (False, True):
+        road = RoadRegion(cam, cfg, _Floor(), {4: T0, 5: T_est}, with_wheels=with_wheels)
+        road.after_update(4, img0)
+        road.after_update(5, img1)
+        assert math.isnan(road.ratio) == with_wheels, with_wheels
+        if not with_wheels:
+            assert road.ratio == pytest.approx(1 / 2.2, rel=0.01)
+
+
 def test_a_sideways_error_of_the_direction_is_searched_out():
     """The estimate's direction 1.2 deg off sideways over a floor with lane lines along the path: measured with
     the estimate's direction the length comes out short (2.3% when written); with the direction searched (the

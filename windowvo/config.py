@@ -301,6 +301,21 @@ class RoadRegionConfig(_Section):
                                           "fused runs 0.84x the 0's; with the untested steps' wait (wheels) 0.83x the "
                                           "old defaults (docs/scale_suite.md, \"Steps on an untested pitch wait for "
                                           "it with wheels, and the region's pixel selection as the default\")")
+    metric_start: bool = Field(False, description="a monocular run whose first two keyframes show no floor plane "
+                               "among their corners (a road: few corners on the asphalt) takes its first baseline "
+                               "from the floor's region (the step between the two images through the floor's "
+                               "homography, searched from a unit baseline), and is metric from its first keyframes "
+                               "instead of from when a floor plane first passes")
+    monocular_search_shifts: int = Field(2, ge=0, le=4, description="without wheels, a step whose best length "
+                                         "lies at the edge of the coarse search (+-42% of the estimate's step) is "
+                                         "searched again on a grid moved out to that edge, at most this many times "
+                                         "(2: steps 0.35x-2.9x the estimate's): a monocular run whose scale drifted "
+                                         "while the floor was out of reach gets its floor's steps measured again "
+                                         "instead of drifting on. With wheels never (their calibrated step bounds "
+                                         "the estimate's; a step 42% off is a slipping wheel, and the moved grid "
+                                         "found 0.56-0.83 of the true step there: docs/scale_suite.md, \"The "
+                                         "region's search moved out without wheels\"). 0: a step off by more is "
+                                         "not measured")
     search_direction_deg: float = Field(1.5, ge=0, lt=20, description="the step's direction is searched within this "
                                         "many degrees sideways of the estimate's, alternately with its length, so that "
                                         "the length does not take up the direction's error (0: the estimate's)")

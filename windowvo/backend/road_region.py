@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -416,6 +417,24 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
     return _search(warp, t_dir, s_est, h, cfg)
 
 
+def _coarse_lengths(correlations: Callable[[np.ndarray], np.ndarray], log_s: float, shifts: int
+                    ) -> tuple[float, float, bool]:
+    """The search's coarse grid of COARSE_STEPS log lengths over +-COARSE_SPAN around ``log_s``: the best one's log
+    length (a parabola through it and its neighbours), its correlation, and whether it lies inside the grid. While
+    it lies at an edge, the grid is moved out to that edge and searched again, up to ``shifts`` times
+    (``monocular_search_shifts``: a monocular run's estimate may be off its step by more than the grid's span)."""
+    centre = log_s
+    for _ in range(shifts + 1):
+        xs = centre + np.linspace(-COARSE_SPAN, COARSE_SPAN, COARSE_STEPS)
+        c = np.asarray(correlations(xs))
+        i = int(np.argmax(c))
+        inside = 0 < i < COARSE_STEPS - 1
+        if inside:
+            break
+        centre = float(xs[i])
+    return _parabola_peak(xs, c, i), float(c[i]), inside
+
+
 def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig) -> StepFit | None:
     """``measure_step``'s search on the assumed floor: a coarse grid of the length around the estimate's, then rounds
     of the direction's sideways angle and the length, each on a third of the last span."""
@@ -446,7 +465,10 @@ def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadReg
         p[axis] = _parabola_peak(xs, c, i)
         return float(c[i]), 0 < i < steps - 1
 
-    c, inside = line(0, COARSE_SPAN, COARSE_STEPS)
+    turn(float(p[1]))
+    p[0], c, inside = _coarse_lengths(
+        lambda xs: np.asarray(warp.correlations(np.array([np.exp(x) for x in xs]), warp.tn[None])), float(p[0]),
+        cfg.monocular_search_shifts)
     if not inside or c < cfg.min_correlation:
         return None
     span_dir, span_s = float(np.radians(cfg.search_direction_deg)), 3 * FINE_SPAN
@@ -507,11 +529,6 @@ def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, c
         p[axis] = _parabola_peak(xs, c, i)
         return float(c[i]), 0 < i < len(xs) - 1
 
-    def lengths(span: float, steps: int) -> tuple[float, bool]:
-        xs = p[0] + np.linspace(-span, span, steps)
-        RX, tn = plane(p)
-        return pick(xs, np.asarray(warp.correlations_at(RX[None], tn[None], np.exp(xs))), 0)
-
     def directions(span: float, steps: int) -> None:
         xs = p[1] + np.linspace(-span, span, steps)
         n = rot_x(float(p[2])) @ warp.n_cam
@@ -529,7 +546,9 @@ def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, c
         p[2] = _parabola_peak(ts, c[:, il], it)
         return float(c[it, il]), 0 < il < steps - 1, 0 < it < steps - 1
 
-    c, inside = lengths(COARSE_SPAN, COARSE_STEPS)
+    RX0, tn0 = plane(p)
+    p[0], c, inside = _coarse_lengths(lambda xs: np.asarray(warp.correlations_at(RX0[None], tn0[None], np.exp(xs))),
+                                      float(p[0]), cfg.monocular_search_shifts)
     if not inside or c < cfg.min_correlation:
         return None
     span_dir, span_t = float(np.radians(cfg.search_direction_deg)), float(np.radians(cfg.pitch_search_deg))
@@ -623,6 +642,9 @@ MIN_PITCH_SEARCHES = 5  # the pooled pitch is tested only once this many searche
 # Keyframe images a cue keeps: the newest step's two, and those of the steps measured on a pitch not yet tested, which
 # are measured again once it is (a step whose images are gone by then is not)
 KEPT_IMAGES = 2 * MIN_PITCH_SEARCHES
+# A monocular run's first step (``RoadRegion.first_baseline``) is searched from a unit baseline: its coarse grid may move
+# out this many times (reach exp(0.35 x 11): 47x either way, a robot's 5 cm keyframe step to a car's 2 m)
+FIRST_STEP_SHIFTS = 10
 
 
 def pooled_pitch(pitches: list[float], sigmas: float, systematic_deg: float = 0.0) -> float:
@@ -679,6 +701,23 @@ class RoadRegionCue:
         """Keyframe k's image and newer are all a step still to be measured needs (no untested step waits)."""
         while self._images and self._images[0][0] < k:
             self._images.popleft()
+
+    def first_step(self, image: np.ndarray | None, mask: np.ndarray | None, T_world_cam0: np.ndarray,
+                   T_world_cam1: np.ndarray, n_base: np.ndarray, floor_offset: float) -> StepFit | None:
+        """The camera step from keyframe 0 (its image kept) to the image ``image`` of keyframe 1, whose camera pose
+        ``T_world_cam1`` has the two views' rotation and direction at any baseline: a monocular run's first step,
+        searched from that baseline over FIRST_STEP_SHIFTS moves of the coarse grid (with the floor's pitch when
+        ``pitch_search_deg``). Nothing is kept or pooled. None: no floor region measures it."""
+        img0 = self._kept(0)
+        if img0 is None or image is None:
+            return None
+        c = self.cfg
+        img1 = smoothed(image, c.blur_px, c.normalise_px, c.normalise_floor)
+        n_cam, h = floor_in_camera(self.T_base_cam, n_base, floor_offset)
+        search = (self._pitch_search if c.pitch_search_deg > 0 else self._plain).model_copy(
+            update={"monocular_search_shifts": FIRST_STEP_SHIFTS})
+        return measure_step(self.camera, img0[1], img1, T_world_cam0, T_world_cam1, n_cam, h, search, self.grid,
+                            (img0[2], mask), self._rays)
 
     def _kept(self, k: int) -> tuple[int, np.ndarray, np.ndarray | None] | None:
         return next((f for f in reversed(self._images) if f[0] == k), None)
@@ -778,7 +817,10 @@ class RoadRegion:
         self.floor = floor  # the window's FloorModel: whether the floor is metric and may be tied, its normal
         self.kf_pose = kf_pose  # the window's keyframe poses (the smoother's; read here)
         on = cfg.ground.road_region.enabled and floor.use_ground
-        self.cue = RoadRegionCue(camera, cfg.ground.road_region, camera.T_base_cam) if on else None
+        rcfg = cfg.ground.road_region
+        if with_wheels:  # the calibrated wheels bound the estimate's step: the coarse search is not moved out
+            rcfg = rcfg.model_copy(update={"monocular_search_shifts": 0})
+        self.cue = RoadRegionCue(camera, rcfg, camera.T_base_cam) if on else None
         self.ratio = float("nan")  # the last keyframe's measured step over the estimate's (nan: none)
         self.pitch_deg = float("nan")  # the floor's pitch against the assumed one it was measured on (nan: none)
         self.n_factors = 0  # range factors added to the smoother
@@ -831,6 +873,18 @@ class RoadRegion:
         if self.floor.cues is not None:  # the cue check's entries for those keyframes (before this one's test)
             self.floor.cues.revise(self.revised)
         return self.floor.camera_height_m / self.ratio
+
+    def first_baseline(self, image: np.ndarray | None, mask: np.ndarray | None, T_base0_cam1: np.ndarray
+                       ) -> float | None:
+        """A monocular run's first baseline (the camera's step from keyframe 0 to 1, metres) measured by the floor's
+        region, with keyframe 0's base as the world and ``T_base0_cam1`` keyframe 1's camera at the two views' rotation
+        and direction (any baseline); None: off (``road_region.metric_start``) or not measured."""
+        if self.cue is None or not self.cfg.ground.road_region.metric_start:
+            return None
+        n = self.floor.floor_normal_base()
+        n_base = np.array([0.0, 0.0, 1.0]) if n is None else n
+        fit = self.cue.first_step(image, mask, self.cue.T_base_cam, T_base0_cam1, n_base, self.floor.floor_offset(n))
+        return None if fit is None or fit.camera_m <= 0 else fit.camera_m
 
     def _measure(self, k: int, w0: int | None, search: bool) -> RoadStep | None:
         """The step k-1 -> k on the floor as the window sees it from keyframe k-1 (``after_update``)."""

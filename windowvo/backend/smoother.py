@@ -268,7 +268,7 @@ class SlidingWindowBackend:
             # floor gives (camera at its known height).
             t_unit = fo.t_dir_kf / max(np.linalg.norm(fo.t_dir_kf), 1e-9)
             return two_view_pose(T_prev, self.T_base_cam, fo.R_cam_kf_cam, fo.t_dir_kf,
-                                 self.floor.first_baseline(fo, t_unit) or 1.0)
+                                 self.floor.first_baseline(fo, t_unit, self.road.first_baseline) or 1.0)
         if k >= 2:  # constant velocity
             T_cv = extrapolate_T(self.kf_pose[k - 2], T_prev)
             if fo.R_cam_kf_cam is not None and fo.t_dir_kf is not None and self.cfg.uses_two_view_guess(self.use_odometry):
