@@ -365,7 +365,7 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
                  T_world_cam1: np.ndarray, n_cam: np.ndarray, h: float, cfg: RoadRegionConfig,
                  grid: tuple[np.ndarray, np.ndarray] | None = None,
                  masks: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
-                 memo: dict | None = None) -> StepFit | None:
+                 memo: dict | None = None, coarse_span: float = COARSE_SPAN) -> StepFit | None:
     """The camera step's metric length from the floor region (``img0``/``img1``: ``smoothed`` images of the two
     keyframes; the poses give the rotation and the direction; ``n_cam``, ``h``: the assumed floor in camera k-1).
 
@@ -413,29 +413,32 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
     if warp.flow_px(s_est) < cfg.min_flow_px:
         return None
     if cfg.pitch_search_deg > 0:
-        return _search_with_pitch(warp, t_dir, s_est, h, cfg)
-    return _search(warp, t_dir, s_est, h, cfg)
+        return _search_with_pitch(warp, t_dir, s_est, h, cfg, coarse_span)
+    return _search(warp, t_dir, s_est, h, cfg, coarse_span)
 
 
-def _coarse_lengths(correlations: Callable[[np.ndarray], np.ndarray], log_s: float, shifts: int
-                    ) -> tuple[float, float, bool]:
-    """The search's coarse grid of COARSE_STEPS log lengths over +-COARSE_SPAN around ``log_s``: the best one's log
-    length (a parabola through it and its neighbours), its correlation, and whether it lies inside the grid. While
-    it lies at an edge, the grid is moved out to that edge and searched again, up to ``shifts`` times
-    (``monocular_search_shifts``: a monocular run's estimate may be off its step by more than the grid's span)."""
+def _coarse_lengths(correlations: Callable[[np.ndarray], np.ndarray], log_s: float, shifts: int,
+                    span: float = COARSE_SPAN) -> tuple[float, float, bool]:
+    """The search's coarse grid of log lengths over +-``span`` around ``log_s``, COARSE_STEPS of them over
+    +-COARSE_SPAN (wider spans at the same spacing): the best one's log length (a parabola through it and its
+    neighbours), its correlation, and whether it lies inside the grid. While it lies at an edge, the grid is moved
+    out to that edge and searched again, up to ``shifts`` times (``monocular_search_shifts``: a monocular run's
+    estimate may be off its step by more than the grid's span)."""
+    steps = 2 * round(span / COARSE_SPAN * (COARSE_STEPS - 1) / 2) + 1
     centre = log_s
     for _ in range(shifts + 1):
-        xs = centre + np.linspace(-COARSE_SPAN, COARSE_SPAN, COARSE_STEPS)
+        xs = centre + np.linspace(-span, span, steps)
         c = np.asarray(correlations(xs))
         i = int(np.argmax(c))
-        inside = 0 < i < COARSE_STEPS - 1
+        inside = 0 < i < steps - 1
         if inside:
             break
         centre = float(xs[i])
     return _parabola_peak(xs, c, i), float(c[i]), inside
 
 
-def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig) -> StepFit | None:
+def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig,
+            coarse_span: float = COARSE_SPAN) -> StepFit | None:
     """``measure_step``'s search on the assumed floor: a coarse grid of the length around the estimate's, then rounds
     of the direction's sideways angle and the length, each on a third of the last span."""
     # p = [log s, sideways turn of the direction]
@@ -468,7 +471,7 @@ def _search(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadReg
     turn(float(p[1]))
     p[0], c, inside = _coarse_lengths(
         lambda xs: np.asarray(warp.correlations(np.array([np.exp(x) for x in xs]), warp.tn[None])), float(p[0]),
-        cfg.monocular_search_shifts)
+        cfg.monocular_search_shifts, coarse_span)
     if not inside or c < cfg.min_correlation:
         return None
     span_dir, span_s = float(np.radians(cfg.search_direction_deg)), 3 * FINE_SPAN
@@ -513,8 +516,8 @@ def _tilt_slope(warp: _Warp, t_dir: np.ndarray, log_s: float, cfg: RoadRegionCon
     return float((ends[1] - ends[0]) / (2.0 * d))
 
 
-def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig
-                       ) -> StepFit | None:
+def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig,
+                       coarse_span: float = COARSE_SPAN                       ) -> StepFit | None:
     """``measure_step``'s search with the floor's pitch: a coarse grid of the length on the assumed floor, then rounds
     of the direction's sideways angle (a line) and of the length and the pitch together (a grid: they trade along a
     ridge), each on a third of the last span (the pitch's once its peak lies inside its grid); the length's peak must
@@ -548,7 +551,7 @@ def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, c
 
     RX0, tn0 = plane(p)
     p[0], c, inside = _coarse_lengths(lambda xs: np.asarray(warp.correlations_at(RX0[None], tn0[None], np.exp(xs))),
-                                      float(p[0]), cfg.monocular_search_shifts)
+                                      float(p[0]), cfg.monocular_search_shifts, coarse_span)
     if not inside or c < cfg.min_correlation:
         return None
     span_dir, span_t = float(np.radians(cfg.search_direction_deg)), float(np.radians(cfg.pitch_search_deg))
@@ -642,9 +645,10 @@ MIN_PITCH_SEARCHES = 5  # the pooled pitch is tested only once this many searche
 # Keyframe images a cue keeps: the newest step's two, and those of the steps measured on a pitch not yet tested, which
 # are measured again once it is (a step whose images are gone by then is not)
 KEPT_IMAGES = 2 * MIN_PITCH_SEARCHES
-# A monocular run's first step (``RoadRegion.first_baseline``) is searched from a unit baseline: its coarse grid may move
-# out this many times (reach exp(0.35 x 11): 47x either way, a robot's 5 cm keyframe step to a car's 2 m)
-FIRST_STEP_SHIFTS = 10
+# A monocular run's first step (``RoadRegion.first_baseline``): its length is unknown, so the coarse grid spans the
+# lengths FIRST_STEP_HEIGHTS camera heights (a robot's 1.5 cm keyframe step under a camera 0.5 m up to a car's 3 m under
+# one 1.65 m up), at the search's usual spacing (185 lengths)
+FIRST_STEP_HEIGHTS = (0.03, 3.0)
 
 
 def pooled_pitch(pitches: list[float], sigmas: float, systematic_deg: float = 0.0) -> float:
@@ -705,9 +709,9 @@ class RoadRegionCue:
     def first_step(self, image: np.ndarray | None, mask: np.ndarray | None, T_world_cam0: np.ndarray,
                    T_world_cam1: np.ndarray, n_base: np.ndarray, floor_offset: float) -> StepFit | None:
         """The camera step from keyframe 0 (its image kept) to the image ``image`` of keyframe 1, whose camera pose
-        ``T_world_cam1`` has the two views' rotation and direction at any baseline: a monocular run's first step,
-        searched from that baseline over FIRST_STEP_SHIFTS moves of the coarse grid (with the floor's pitch when
-        ``pitch_search_deg``). Nothing is kept or pooled. None: no floor region measures it."""
+        ``T_world_cam1`` has the two views' rotation and direction at any baseline: a monocular run's first step, its
+        coarse grid over FIRST_STEP_HEIGHTS (with the floor's pitch when ``pitch_search_deg``). Nothing is kept or
+        pooled. None: no floor region measures it."""
         img0 = self._kept(0)
         if img0 is None or image is None:
             return None
@@ -715,9 +719,13 @@ class RoadRegionCue:
         img1 = smoothed(image, c.blur_px, c.normalise_px, c.normalise_floor)
         n_cam, h = floor_in_camera(self.T_base_cam, n_base, floor_offset)
         search = (self._pitch_search if c.pitch_search_deg > 0 else self._plain).model_copy(
-            update={"monocular_search_shifts": FIRST_STEP_SHIFTS})
-        return measure_step(self.camera, img0[1], img1, T_world_cam0, T_world_cam1, n_cam, h, search, self.grid,
-                            (img0[2], mask), self._rays)
+            update={"monocular_search_shifts": 0})
+        lo, hi = FIRST_STEP_HEIGHTS
+        c0, c1 = T_world_cam0[:3, 3], T_world_cam1[:3, 3]
+        T_mid = T_world_cam1.copy()  # the grid's centre: the geometric mean of its lengths
+        T_mid[:3, 3] = c0 + (c1 - c0) * (math.sqrt(lo * hi) * h / max(float(np.linalg.norm(c1 - c0)), 1e-12))
+        return measure_step(self.camera, img0[1], img1, T_world_cam0, T_mid, n_cam, h, search, self.grid,
+                            (img0[2], mask), self._rays, coarse_span=0.5 * math.log(hi / lo))
 
     def _kept(self, k: int) -> tuple[int, np.ndarray, np.ndarray | None] | None:
         return next((f for f in reversed(self._images) if f[0] == k), None)
