@@ -299,6 +299,32 @@ def test_call_task_resolves_main_module_objects(tmp_path):
     assert proc.stdout.strip() == "ok 10.0", proc.stdout + proc.stderr
 
 
+def test_a_stop_signal_ends_the_whole_call_not_only_its_run_in_progress(tmp_path):
+    """A call of many runs (a scale-suite case is eight) that gets SIGTERM during a run (its parent stopping it, timing
+    it out or dying): that run still writes what it has, and no later run starts; the call ends 143, no value."""
+    (tmp_path / "stopprobe.py").write_text(
+        "import os, signal\n"
+        "from pathlib import Path\n"
+        "from windowvo.runtime import stop\n"
+        "from windowvo.tools.executors import LocalExecutor, call_task\n"
+        "def two_runs(folder):\n"
+        "    for i in range(2):\n"
+        "        with stop.guarded(stop.Phase.RAISE):  # as run_job enters a run\n"
+        "            stop.set_phase(stop.Phase.DEFER)  # its frames: a signal stops the run, which writes\n"
+        "            if i == 0:\n"
+        "                os.kill(os.getpid(), signal.SIGTERM)\n"
+        "            Path(folder, f'run{i}').write_text('written')\n"
+        "    return 'both'\n"
+        "if __name__ == '__main__':\n"
+        "    (o,) = LocalExecutor(1).run([call_task('runs', two_runs, os.getcwd())])\n"
+        "    print(o.status.value, o.value, o.reason)\n"
+    )
+    proc = subprocess.run([sys.executable, "-m", "stopprobe"], capture_output=True, text=True, timeout=120,
+                          cwd=tmp_path)
+    assert proc.stdout.strip() == "failed None stopped by SIGTERM (exit code 143)", proc.stdout + proc.stderr
+    assert (tmp_path / "run0").is_file() and not (tmp_path / "run1").exists()
+
+
 def test_globs_match_folders_and_for_bags_and_videos_files(tmp_path):
     rec = tmp_path / "rec"
     (rec / "day1").mkdir(parents=True)

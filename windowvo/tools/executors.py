@@ -146,6 +146,8 @@ def failure_reason(returncode: int, stderr: str) -> str:
         return f"killed by {_signal_name(-returncode)}"
     if returncode == 130:
         return "interrupted (exit code 130)"
+    if returncode == 143:
+        return "stopped by SIGTERM (exit code 143)"
     last = lines[-1] if lines else "no error output"
     return f"exit code {returncode}: {last}"
 
@@ -342,14 +344,28 @@ def values_in_processes(calls: list[tuple[str, Callable[..., Any], tuple]], jobs
 
 
 def _call_main(result_path: str) -> int:
-    """Worker side of :func:`call_task`: read the pickled call on stdin, pickle its return value."""
-    payload = pickle.loads(sys.stdin.buffer.read())
-    fn, args, kwargs = _MainMappingUnpickler(payload["call"], payload["main_module"]).load()
+    """Worker side of :func:`call_task`: read the pickled call on stdin, pickle its return value.
+
+    A stop signal (SIGTERM: the parent stopping the task, timing it out or dying; Ctrl-C) ends the whole call: the
+    run in progress stops between two frames and writes what it has (``runtime/stop.py``), and no later run of the
+    call starts (a call may be many runs: a scale-suite case is eight). Outside a run's frames the signal unwinds the
+    call at once. The exit code is then 128 + the signal, and no value is returned."""
+    from ..runtime import stop
+
+    stop.install()  # for the whole call: a run's own guard then keeps the signal it records for the next run to see
+    stop.set_phase(stop.Phase.RAISE)
     try:
+        payload = pickle.loads(sys.stdin.buffer.read())
+        fn, args, kwargs = _MainMappingUnpickler(payload["call"], payload["main_module"]).load()
         value = fn(*args, **kwargs)
+    except stop.Interrupted as sig:
+        return stop.exit_code(sig.signum)
     except WindowVOError as err:
         print(f"{ERROR_PREFIX} {err}", file=sys.stderr)
         return 2
+    signum = stop.requested()
+    if signum is not None:  # the last run was cut short: its value is not the call's
+        return stop.exit_code(signum)
     Path(result_path).write_bytes(pickle.dumps(value))
     return 0
 
