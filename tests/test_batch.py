@@ -28,6 +28,7 @@ from windowvo.synth.generate import SynthSpec, generate_sequence
 from windowvo.synth.paths import PathKind
 from windowvo.tools import batch
 from windowvo.tools.executors import (
+    TERM_GRACE_S,
     ExecutorKind,
     ExecutorUnavailableError,
     LocalExecutor,
@@ -323,6 +324,29 @@ def test_a_stop_signal_ends_the_whole_call_not_only_its_run_in_progress(tmp_path
                           cwd=tmp_path)
     assert proc.stdout.strip() == "failed None stopped by SIGTERM (exit code 143)", proc.stdout + proc.stderr
     assert (tmp_path / "run0").is_file() and not (tmp_path / "run1").exists()
+
+
+def test_a_call_timed_out_after_a_run_stops_at_its_sigterm(tmp_path):
+    """A call whose run is over and which goes on with other work (evaluation, a plot; here a sleep) is stopped by
+    its time-out's SIGTERM at once, not by the SIGKILL TERM_GRACE_S later."""
+    (tmp_path / "sleepprobe.py").write_text(
+        "import time\n"
+        "from windowvo.runtime import stop\n"
+        "from windowvo.tools.executors import LocalExecutor, call_task\n"
+        "def run_then_sleep(seconds):\n"
+        "    with stop.guarded(stop.Phase.RAISE):  # as run_job enters a run\n"
+        "        stop.set_phase(stop.Phase.DEFER)  # its frames\n"
+        "    time.sleep(seconds)\n"
+        "if __name__ == '__main__':\n"
+        "    t0 = time.perf_counter()\n"
+        "    (o,) = LocalExecutor(1).run([call_task('sleeper', run_then_sleep, 60.0, timeout_s=2.0)])\n"
+        "    print(o.reason, round(time.perf_counter() - t0))\n"
+    )
+    proc = subprocess.run([sys.executable, "-m", "sleepprobe"], capture_output=True, text=True, timeout=120,
+                          cwd=tmp_path)
+    reason, _, seconds = proc.stdout.strip().rpartition(" ")
+    assert reason == "timed out after 2 s", proc.stdout + proc.stderr
+    assert int(seconds) < 2 + TERM_GRACE_S / 2, proc.stdout  # SIGTERM ended it, not the SIGKILL after the grace
 
 
 def test_globs_match_folders_and_for_bags_and_videos_files(tmp_path):

@@ -70,6 +70,17 @@ def observe_motion(attitude: FloorAttitude, fo: FrontendOutput, T_base_cam: np.n
     attitude.add_motion(T_base_cam[:3, :3] @ c_kf)
 
 
+# A monocular first baseline measured by the floor's region (``RoadRegion.first_baseline``): keyframe 1's image, its
+# mask, its camera in keyframe 0's base frame -> the camera's step (m), or None
+RegionBaseline = Callable[[np.ndarray | None, np.ndarray | None, np.ndarray], float | None]
+
+
+def first_camera(T_base_cam: np.ndarray, fo: FrontendOutput, t_unit: np.ndarray) -> np.ndarray:
+    """Keyframe 1's camera in keyframe 0's base frame from the two views' rotation and unit direction."""
+    assert fo.R_cam_kf_cam is not None
+    return T_base_cam @ inv_T(make_T(fo.R_cam_kf_cam, t_unit))
+
+
 def floors_agree(previous: float, current: float) -> bool:
     """Two consecutive keyframes' up-to-scale floor planes (scales or heights) agree within ``FLOOR_AGREEMENT``."""
     return abs(current / previous - 1.0) <= FLOOR_AGREEMENT
@@ -418,17 +429,14 @@ class FloorModel:
                 self.n_floor_untied += 1
 
     # ------------------------------------------------------------------ metric scale (monocular)
-    def first_baseline(self, fo: FrontendOutput, t_unit: np.ndarray,
-                       region: Callable[[np.ndarray | None, np.ndarray | None, np.ndarray], float | None] | None = None
+    def first_baseline(self, fo: FrontendOutput, t_unit: np.ndarray, region: RegionBaseline | None = None
                        ) -> float | None:
-        """The monocular start's first baseline that puts the floor at the camera's known height (the run is
-        metric from here), or None (no floor plane in the first two keyframes: up to scale for now). ``region``:
-        where the floor's corners give no plane, the floor's region measures the baseline
-        (``RoadRegion.first_baseline``: keyframe 1's image and mask, its camera in keyframe 0's base frame)."""
-        baseline = self._two_view_ground_baseline(fo, t_unit) if self.use_ground else None
-        source = "plane"
+        """The monocular start's first baseline that puts the floor at the camera's known height (the run is metric
+        from here), or None (no floor plane in the first two keyframes: up to scale for now). ``region``: where the
+        corners give no plane, the floor's region measures it (``RoadRegion.first_baseline``)."""
+        baseline, source = self._two_view_ground_baseline(fo, t_unit) if self.use_ground else None, "plane"
         if baseline is None and self.use_ground and region is not None:
-            baseline, source = region(fo.image, fo.image_mask, self._first_camera(fo, t_unit)), "region"
+            baseline, source = region(fo.image, fo.image_mask, first_camera(self.T_base_cam, fo, t_unit)), "region"
         if baseline is not None:
             self.metric = True
             log.info("monocular start: the floor %s sets the first baseline to %.3f m (metric)", source, baseline)
@@ -437,15 +445,10 @@ class FloorModel:
                         "comes into view (from there metric, the trajectory before it rescaled)")
         return baseline
 
-    def _first_camera(self, fo: FrontendOutput, t_unit: np.ndarray) -> np.ndarray:
-        """Keyframe 1's camera in keyframe 0's base frame from the two views' rotation and unit direction."""
-        assert fo.R_cam_kf_cam is not None
-        return self.T_base_cam @ inv_T(make_T(fo.R_cam_kf_cam, t_unit))
-
     def _two_view_ground_baseline(self, fo: FrontendOutput, t_unit: np.ndarray) -> float | None:
         """Length of the first baseline that puts the floor at the camera's known height."""
         # Both keyframes in a unit-baseline world anchored at keyframe 0's base.
-        T_b0_c1 = self._first_camera(fo, t_unit)
+        T_b0_c1 = first_camera(self.T_base_cam, fo, t_unit)
         cams = LandmarkManager.camera_poses({0: np.eye(4)}, self.T_base_cam)
         cams[1] = (T_b0_c1[:3, :3], T_b0_c1[:3, 3])
         cur = dict(zip(fo.track_ids.tolist(), fo.pixels_undistorted))

@@ -517,7 +517,7 @@ def _tilt_slope(warp: _Warp, t_dir: np.ndarray, log_s: float, cfg: RoadRegionCon
 
 
 def _search_with_pitch(warp: _Warp, t_dir: np.ndarray, s_est: float, h: float, cfg: RoadRegionConfig,
-                       coarse_span: float = COARSE_SPAN                       ) -> StepFit | None:
+                       coarse_span: float = COARSE_SPAN) -> StepFit | None:
     """``measure_step``'s search with the floor's pitch: a coarse grid of the length on the assumed floor, then rounds
     of the direction's sideways angle (a line) and of the length and the pitch together (a grid: they trade along a
     ridge), each on a third of the last span (the pitch's once its peak lies inside its grid); the length's peak must
@@ -646,8 +646,8 @@ MIN_PITCH_SEARCHES = 5  # the pooled pitch is tested only once this many searche
 # are measured again once it is (a step whose images are gone by then is not)
 KEPT_IMAGES = 2 * MIN_PITCH_SEARCHES
 # A monocular run's first step (``RoadRegion.first_baseline``): its length is unknown, so the coarse grid spans the
-# lengths FIRST_STEP_HEIGHTS camera heights (a robot's 1.5 cm keyframe step under a camera 0.5 m up to a car's 3 m under
-# one 1.65 m up), at the search's usual spacing (185 lengths)
+# lengths FIRST_STEP_HEIGHTS camera heights (a robot's 1.5 cm keyframe step under a camera 0.5 m up to 5 m under a
+# car's camera 1.65 m up: a 2 m step at 10 Hz is 1.2), at the search's usual spacing (185 lengths)
 FIRST_STEP_HEIGHTS = (0.03, 3.0)
 
 

@@ -45,6 +45,10 @@ class StopState:
     abortable: bool = False  # a second SIGINT aborts (the frame loop)
     installed: bool = False
     previous: dict[int, object] = field(default_factory=dict)
+    depth: int = 0  # guarded blocks open
+    # The phase outside every guarded block when the handlers outlive the runs (``between_runs``: a worker process
+    # whose call makes many runs); None: the phase the last block left
+    between: Phase | None = None
 
 
 STATE = StopState()
@@ -77,6 +81,7 @@ def uninstall() -> None:
         signal.signal(sig, handler)  # type: ignore[arg-type]
     STATE.previous.clear()
     STATE.installed = False
+    STATE.between = None
     STATE.signum = None
     STATE.count = 0
     STATE.phase = Phase.DEFER
@@ -105,14 +110,36 @@ def set_phase(phase: Phase) -> None:
 def guarded(phase: Phase) -> Iterator[None]:
     """Handlers installed for the block (unless already installed, e.g. by the command line), in ``phase``;
     what this installed is removed afterwards. The phase is left as the block left it: once frames are computed
-    (``DEFER``), no later step of the run unwinds on a signal."""
+    (``DEFER``), no later step of the run unwinds on a signal; except in a worker (``between_runs``), where leaving
+    the outermost block puts its phase back and, with ``RAISE``, a signal the run recorded then raises."""
     mine = install()
+    STATE.depth += 1
     try:
         set_phase(phase)
         yield
-    finally:
-        if mine:
-            uninstall()
+    except BaseException:
+        _leave(mine)
+        raise
+    _leave(mine)
+    if STATE.depth == 0 and STATE.between is Phase.RAISE:
+        check()  # a signal the run recorded: its outputs are written, and nothing after it runs
+
+
+def _leave(mine: bool) -> None:
+    STATE.depth -= 1
+    if mine:
+        uninstall()
+    elif STATE.depth == 0 and STATE.between is not None:
+        STATE.phase = STATE.between
+
+
+def between_runs(phase: Phase) -> None:
+    """Handlers installed for the rest of the process, and ``phase`` outside every guarded block (a run's): a
+    worker whose call makes many runs (``tools/executors.py``) with ``RAISE`` ends the call at a signal, once the run
+    in progress has written its outputs, or at once between runs."""
+    install()
+    STATE.between = phase
+    set_phase(phase)
 
 
 @contextlib.contextmanager

@@ -347,13 +347,12 @@ def _call_main(result_path: str) -> int:
     """Worker side of :func:`call_task`: read the pickled call on stdin, pickle its return value.
 
     A stop signal (SIGTERM: the parent stopping the task, timing it out or dying; Ctrl-C) ends the whole call: the
-    run in progress stops between two frames and writes what it has (``runtime/stop.py``), and no later run of the
-    call starts (a call may be many runs: a scale-suite case is eight). Outside a run's frames the signal unwinds the
-    call at once. The exit code is then 128 + the signal, and no value is returned."""
+    run in progress stops between two frames, writes what it has (``runtime/stop.py``) and the call ends there, before
+    any later run or other work of the call (a call may be many runs: a scale-suite case is eight). Outside a run the
+    signal unwinds the call at once. The exit code is then 128 + the signal, and no value is returned."""
     from ..runtime import stop
 
-    stop.install()  # for the whole call: a run's own guard then keeps the signal it records for the next run to see
-    stop.set_phase(stop.Phase.RAISE)
+    stop.between_runs(stop.Phase.RAISE)
     try:
         payload = pickle.loads(sys.stdin.buffer.read())
         fn, args, kwargs = _MainMappingUnpickler(payload["call"], payload["main_module"]).load()
