@@ -280,9 +280,16 @@ def test_local_executor_isolates_crashes_timeouts_and_errors():
     assert out["run_cli"].reason == "config file not found: /nonexistent/config.yaml"
 
 
+def _probe(folder: Path, module: str, source: str) -> str:
+    """Write ``source`` as ``module``.py into ``folder`` and run it there as ``python -m module``: its stdout."""
+    (folder / f"{module}.py").write_text(source)
+    proc = subprocess.run([sys.executable, "-m", module], capture_output=True, text=True, timeout=120, cwd=folder)
+    return proc.stdout.strip() + ("" if proc.returncode == 0 else f"\n(exit {proc.returncode}) {proc.stderr}")
+
+
 def test_call_task_resolves_main_module_objects(tmp_path):
     """Functions and classes of a module run as ``python -m`` pickle as ``__main__.X``; the worker maps them back."""
-    (tmp_path / "batchprobe.py").write_text(
+    out = _probe(tmp_path, "batchprobe",
         "from dataclasses import dataclass\n"
         "from windowvo.tools.executors import LocalExecutor, call_task\n"
         "@dataclass\n"
@@ -295,15 +302,13 @@ def test_call_task_resolves_main_module_objects(tmp_path):
         "    (o,) = LocalExecutor(1).run([call_task('leg', length, Leg(6.0, 8.0))])\n"
         "    print(o.status.value, o.value, o.reason)\n"
     )
-    proc = subprocess.run([sys.executable, "-m", "batchprobe"], capture_output=True, text=True, timeout=120,
-                          cwd=tmp_path)
-    assert proc.stdout.strip() == "ok 10.0", proc.stdout + proc.stderr
+    assert out == "ok 10.0", out
 
 
 def test_a_stop_signal_ends_the_whole_call_not_only_its_run_in_progress(tmp_path):
     """A call of many runs (a scale-suite case is eight) that gets SIGTERM during a run (its parent stopping it, timing
     it out or dying): that run still writes what it has, and no later run starts; the call ends 143, no value."""
-    (tmp_path / "stopprobe.py").write_text(
+    out = _probe(tmp_path, "stopprobe",
         "import os, signal\n"
         "from pathlib import Path\n"
         "from windowvo.runtime import stop\n"
@@ -320,16 +325,14 @@ def test_a_stop_signal_ends_the_whole_call_not_only_its_run_in_progress(tmp_path
         "    (o,) = LocalExecutor(1).run([call_task('runs', two_runs, os.getcwd())])\n"
         "    print(o.status.value, o.value, o.reason)\n"
     )
-    proc = subprocess.run([sys.executable, "-m", "stopprobe"], capture_output=True, text=True, timeout=120,
-                          cwd=tmp_path)
-    assert proc.stdout.strip() == "failed None stopped by SIGTERM (exit code 143)", proc.stdout + proc.stderr
+    assert out == "failed None stopped by SIGTERM (exit code 143)", out
     assert (tmp_path / "run0").is_file() and not (tmp_path / "run1").exists()
 
 
 def test_a_call_timed_out_after_a_run_stops_at_its_sigterm(tmp_path):
     """A call whose run is over and which goes on with other work (evaluation, a plot; here a sleep) is stopped by
     its time-out's SIGTERM at once, not by the SIGKILL TERM_GRACE_S later."""
-    (tmp_path / "sleepprobe.py").write_text(
+    out = _probe(tmp_path, "sleepprobe",
         "import time\n"
         "from windowvo.runtime import stop\n"
         "from windowvo.tools.executors import LocalExecutor, call_task\n"
@@ -342,11 +345,9 @@ def test_a_call_timed_out_after_a_run_stops_at_its_sigterm(tmp_path):
         "    (o,) = LocalExecutor(1).run([call_task('sleeper', run_then_sleep, 60.0, timeout_s=2.0)])\n"
         "    print(o.reason, round(time.perf_counter() - t0))\n"
     )
-    proc = subprocess.run([sys.executable, "-m", "sleepprobe"], capture_output=True, text=True, timeout=120,
-                          cwd=tmp_path)
-    reason, _, seconds = proc.stdout.strip().rpartition(" ")
-    assert reason == "timed out after 2 s", proc.stdout + proc.stderr
-    assert int(seconds) < 2 + TERM_GRACE_S / 2, proc.stdout  # SIGTERM ended it, not the SIGKILL after the grace
+    reason, _, seconds = out.rpartition(" ")
+    assert reason == "timed out after 2 s", out
+    assert int(seconds) < 2 + TERM_GRACE_S / 2, out  # SIGTERM ended it, not the SIGKILL after the grace
 
 
 def test_globs_match_folders_and_for_bags_and_videos_files(tmp_path):

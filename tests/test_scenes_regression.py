@@ -17,6 +17,24 @@ def _case(name: str) -> ss.ScaleCase:
     return next(c for c in ss.rendered_cases() if c.name == name)
 
 
+def _street(path: str, seed: int, scale_error: float = 0.02, **extra) -> ss.ScaleCase:
+    """A street not in the scale suite: 8 s at 10 m/s, its wheels ``scale_error`` and 2 mrad/m off."""
+    return ss.ScaleCase(f"street_{path}_{seed}", "street",
+                        {"path": path, "seed": seed, "duration_s": 8.0, **extra, **ss.STREET_IMAGE,
+                         "wheel": {"scale_error": scale_error, "yaw_bias_per_m": 0.002}})
+
+
+def _off_and_on(case: ss.ScaleCase, folder, way: str, key: str, *overrides: str) -> list:
+    """The job reports of ``way`` run on ``case`` with the switch ``key`` false, then true (each run metric)."""
+    reps = []
+    for on in (False, True):
+        data = ss.case_config(case, folder, folder / f"out_{on}", way, (*overrides, f"{key}={str(on).lower()}"))
+        rep = run_job(config_from_dict(data))
+        assert rep.accuracy is not None and rep.result.metric
+        reps.append(rep)
+    return reps
+
+
 def _fused_and_wheels_alone(name: str, folder):
     """ATE SE(3) of the default (fused) run, of the wheels alone, and the path length (m)."""
     case = _case(name)
@@ -95,16 +113,9 @@ def test_the_road_measured_by_region_makes_the_fused_street_metric(tmp_path):
     cases = [("straight", 321, 0.02, {}), ("loop", 322, -0.02, {}), ("straight", 323, 0.03, {"kerb_height_m": 0.10})]
     ratios, region, paths = [], [], []
     for path, seed, scale, extra in cases:
-        case = ss.ScaleCase(f"street_{path}_{seed}", "street",
-                            {"path": path, "seed": seed, "duration_s": 8.0, **extra, **ss.STREET_IMAGE,
-                             "wheel": {"scale_error": scale, "yaw_bias_per_m": 0.002}})
-        ate = []
-        for on in (False, True):
-            data = ss.case_config(case, tmp_path, tmp_path / f"out_{on}", "fused",
-                                  (f"backend.ground.road_region.enabled={str(on).lower()}",))
-            rep = run_job(config_from_dict(data))
-            assert rep.accuracy is not None and rep.result.metric
-            ate.append(rep.accuracy.ate_se3_rmse_m)
+        reps = _off_and_on(_street(path, seed, scale, **extra), tmp_path, "fused", "backend.ground.road_region.enabled")
+        ate = [r.accuracy.ate_se3_rmse_m for r in reps]
+        rep = reps[1]
         paths.append(rep.accuracy.path_length_m)
         ratios.append(ate[1] / ate[0])
         region.append(ate[1] / rep.accuracy.path_length_m)
@@ -126,17 +137,9 @@ def test_the_mount_pitch_from_the_motion_corrects_the_road_region(tmp_path):
     exact street never switches (the same run bit for bit, 0.107 m)."""
     cases = [("straight", 331, 1.0), ("loop", 332, -1.0), ("straight", 333, 0.0)]
     for path, seed, pitch_error in cases:
-        case = ss.ScaleCase(f"street_{path}_{seed}", "street",
-                            {"path": path, "seed": seed, "duration_s": 8.0, "calib_pitch_error_deg": pitch_error,
-                             **ss.STREET_IMAGE, "wheel": {"scale_error": 0.02, "yaw_bias_per_m": 0.002}})
-        runs = []
-        for motion in (False, True):
-            data = ss.case_config(case, tmp_path, tmp_path / f"out_{motion}", "floor",
-                                  ("backend.ground.road_region.enabled=true",
-                                   f"backend.ground.mount_from_motion={str(motion).lower()}"))
-            rep = run_job(config_from_dict(data))
-            assert rep.accuracy is not None and rep.result.metric
-            runs.append(rep)
+        case = _street(path, seed, calib_pitch_error_deg=pitch_error)
+        runs = _off_and_on(case, tmp_path, "floor", "backend.ground.mount_from_motion",
+                           "backend.ground.road_region.enabled=true")
         off, on = (r.accuracy for r in runs)
         records = runs[1].result.records
         tilt_x = [r.floor_tilt_x_deg for r in records if r.floor_tilt_x_deg == r.floor_tilt_x_deg]
@@ -157,17 +160,7 @@ def test_a_monocular_street_is_metric_from_its_first_step_with_the_regions_metri
     seed 371) whose first keyframes show no floor plane among their corners is up to scale until one passes, then
     rescaled by it; with the region's first baseline it is metric from its first keyframes. When written: metric from
     frame 4 (off) and from the start (on); ATE 0.112 and 0.054 m of 80 m."""
-    case = ss.ScaleCase("street_straight_371", "street",
-                        {"path": "straight", "seed": 371, "duration_s": 8.0, **ss.STREET_IMAGE,
-                         "wheel": {"scale_error": 0.02, "yaw_bias_per_m": 0.002}})
-    reps = []
-    for on in (False, True):
-        data = ss.case_config(case, tmp_path, tmp_path / f"out_{on}", "floor",
-                              (f"backend.ground.road_region.metric_start={str(on).lower()}",))
-        rep = run_job(config_from_dict(data))
-        assert rep.accuracy is not None and rep.result.metric
-        reps.append(rep)
-    off, on = reps
+    off, on = _off_and_on(_street("straight", 371), tmp_path, "floor", "backend.ground.road_region.metric_start")
     print(f"metric from frame {off.result.metric_from_frame} (off), {on.result.metric_from_frame} (on); ATE "
           f"{off.accuracy.ate_se3_rmse_m:.3f} / {on.accuracy.ate_se3_rmse_m:.3f} m of {on.accuracy.path_length_m:.0f} m")
     assert off.result.metric_from_frame is not None and off.result.metric_from_frame >= 2  # a late start
