@@ -138,6 +138,15 @@ def test_interruption_keeps_results(seq_factory, tmp_path, sig):
     assert images == len(traj)
 
 
+def test_a_bad_override_of_the_embedded_default_is_one_line_before_any_rendering(tmp_path):
+    """The embedded default renders its sequence first (about a minute, once): a bad key or value is told before."""
+    r = subprocess.run([sys.executable, "-m", "windowvo.run", "--no-progress", "backend.window_sizee=5"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().startswith("windowvo: error: invalid config") and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "windowvo_output" / "default_sequence").exists()  # nothing rendered
+
+
 @pytest.mark.slow
 def test_default_run_from_the_command_line(tmp_path):
     """The README's main command, in a fresh folder (renders the embedded default sequence)."""

@@ -26,6 +26,8 @@ def default_config(overrides: list[str], root: Path | None = None) -> Config:
 
     root = DEFAULT_ROOT if root is None else root
     seq_dir = root / "default_sequence"
+    data = apply_overrides({"sequence": str(seq_dir.resolve()), "output": str((root / "default").resolve())}, overrides)
+    cfg = config_from_dict(data, base_dir=Path.cwd())  # a bad override is one line before a minute of rendering
     spec = SynthSpec(path=PathKind.LOOP, duration_s=25.0, fps=20.0, seed=1)
     marker = seq_dir / "synth.json"
     if not marker.is_file() or json.loads(marker.read_text()).get("seed") != spec.seed or not (
@@ -37,9 +39,7 @@ def default_config(overrides: list[str], root: Path | None = None) -> Config:
             generate_sequence(seq_dir, spec, progress=lambda n, total: bar.update(n))
         finally:
             bar.close()
-    data = {"sequence": str(seq_dir.resolve()), "output": str((root / "default").resolve())}
-    data = apply_overrides(data, overrides)
-    return config_from_dict(data, base_dir=Path.cwd())
+    return cfg
 
 
 def check_output_folder(out: Path) -> None:
