@@ -41,6 +41,12 @@ truth's poses the rendered straight streets' steps scatter by 0.4% where at the 
 measured again with the camera tilted either way (``_tilt_slope``) and the step is tied along that ridge
 (``ridge_factor``): the window's tilt, refined after the step was measured, picks its length.
 
+Where the length is searched: around the estimate's, +42% / -30% (``COARSE_SPAN``); with wheels that is the calibrated
+wheels' step, and a step beyond it a slipping wheel. Without, a monocular run's scale may have drifted further while
+the floor was out of reach: the grid moves out while its best length lies at its edge (``monocular_search_shifts``).
+A monocular run's first step has no estimate of its length at all: with ``metric_start`` it is searched on one grid
+over 0.03-3 camera heights (``RoadRegion.first_baseline``).
+
 The measurement (``measure_step``, ``RoadRegionCue``: which images, which step) is numpy and OpenCV, tested on its own
 (``tests/test_road_region.py``); ``RoadRegion`` is the smoother's side (when to measure, when its range factor may go
 in), and ``range_factor`` and ``ridge_factor`` its GTSAM factors.
