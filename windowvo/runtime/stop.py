@@ -9,6 +9,10 @@ recorded (:func:`requested`); whether it also raises :class:`Interrupted` depend
   signal is only recorded; the frame loop stops between two frames and every output is still written. A second
   Ctrl-C during the frame loop (``abortable``) aborts the frame in progress.
 
+A worker process whose one call makes many runs (``tools/executors.py``: a scale-suite case is eight) keeps the
+handlers for the whole call (:func:`between_runs`): outside a run a signal unwinds at once, and a signal a run
+recorded raises once that run has written its outputs, so no later run of the call starts.
+
 Light on imports on purpose: ``python -m windowvo.run`` installs it before OpenCV and GTSAM are loaded.
 """
 
