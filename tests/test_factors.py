@@ -232,3 +232,40 @@ def test_a_pose_agrees_with_the_wheel_step_within_the_wheel_factors_own_threshol
     assert not fac.agrees_with_wheel_step(cfg, T_wheels, shifted, 0.3, 0.0)
     turned = T_wheels @ make_T(rpy_to_R(0.0, 0.0, 0.1), [0.0, 0.0, 0.0])  # 5.7 deg of heading
     assert not fac.agrees_with_wheel_step(cfg, T_wheels, turned, 0.3, 0.0)
+
+
+def test_climb_change_factor_ties_two_steps_climb_rate_not_the_rate_itself():
+    cfg = BackendConfig(odometry={"climb_sigma_per_m": 0.01})
+    # A base whose mount is pitched 1 deg against T_base_cam: every step climbs 1.7% in the set-up's base frame.
+    pitch = np.radians(-1.0)
+    R = rpy_to_R(0.0, pitch, 0.3)
+    x_axis = R[:, 0]
+    poses = [make_T(R, [0.0, 0.0, 0.0]), make_T(R, 0.4 * x_axis), make_T(R, 1.0 * x_axis)]
+    v = gtsam.Values()
+    for i, T in enumerate(poses):
+        v.insert(X(i), gtsam.Pose3(T))
+    f = fac.climb_change_factor(cfg, 2, 0.4, 0.6)
+    assert list(f.keys()) == [X(0), X(1), X(2)]
+    assert abs(f.unwhitenedError(v)[0]) < 1e-12  # the same climb rate: no residual however large the rate
+    # The second step climbs 1 cm more than the first's rate says: 1 cm x (mean distance / its distance).
+    v.update(X(2), gtsam.Pose3(poses[2] @ make_T(np.eye(3), [0.0, 0.0, 0.01])))
+    assert f.unwhitenedError(v)[0] == pytest.approx(0.01 * 0.5 / 0.6, rel=1e-6)
+    assert f.noiseModel().sigmas()[0] == pytest.approx(0.005)  # 1% of 0.5 m is under the 5 mm floor
+    assert fac.climb_change_factor(cfg, 2, 2.0, 3.0).noiseModel().sigmas()[0] == pytest.approx(0.025)
+    # Jacobians against numerical derivatives, at a generic point
+    v2 = gtsam.Values()
+    for i, T in enumerate([make_T(rpy_to_R(0.02, -0.03, 0.4), [1.0, 2.0, 0.05]),
+                           make_T(rpy_to_R(-0.01, 0.02, 0.7), [1.5, 2.4, 0.02]),
+                           make_T(rpy_to_R(0.03, 0.01, 0.9), [1.9, 3.0, 0.04])]):
+        v2.insert(X(i), gtsam.Pose3(T))
+    A, _ = f.linearize(v2).jacobian()
+    eps, num = 1e-6, []
+    for key in f.keys():
+        for j in range(6):
+            d = np.zeros(6)
+            d[j] = eps
+            vp, vm = gtsam.Values(v2), gtsam.Values(v2)
+            vp.update(key, v2.atPose3(key).retract(d))
+            vm.update(key, v2.atPose3(key).retract(-d))
+            num.append((f.unwhitenedError(vp)[0] - f.unwhitenedError(vm)[0]) / (2 * eps))
+    assert np.allclose(A[0] * 0.005, num, atol=1e-6)

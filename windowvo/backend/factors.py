@@ -30,6 +30,8 @@ from .chi2 import chi2_quantile
 FREE_SIGMA = 1e3
 # Yaw uncertainty added per radian of turn in one odometry step (wheel geometry errors grow with turning).
 YAW_SIGMA_PER_RAD = 0.02
+# Wheel steps shorter than this are not tied by their climb rate (standing still: the rate is undefined).
+CLIMB_MIN_STEP_M = 0.02
 # Smart projection factors: re-triangulate when a pose moved this much (Kimera-VIO's setting), and the rank
 # tolerance of their triangulation.
 SMART_RETRIANGULATION_THRESHOLD = 1e-3
@@ -314,6 +316,41 @@ def odometry_factors(cfg: BackendConfig, k: int, T_prev_cur: np.ndarray, distanc
         planar = gtsam.noiseModel.Diagonal.Sigmas(np.array([FREE_SIGMA, FREE_SIGMA, s_yaw, s_xy, s_xy, FREE_SIGMA]))
         out.append(gtsam.BetweenFactorPose3(X(k - 1), X(k), meas, robust(planar, o.robust, k_planar)))
     return out
+
+
+def _climb_change_error(d0: float, d1: float, this: gtsam.CustomFactor, values: gtsam.Values,
+                        H: list | None) -> np.ndarray:
+    """Residual (m) of the change of climb rate over two consecutive wheel steps k-2 -> k-1 -> k of ``d0``, ``d1``
+    metres: ``d (z1 / d1 - z0 / d0)`` with ``d`` their mean and ``z`` each step's translation along its first base
+    frame's z axis."""
+    k0, k1, k2 = this.keys()
+    A0, B0 = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+    A1, B1 = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+    D0 = values.atPose3(k0).between(values.atPose3(k1), A0, B0)
+    D1 = values.atPose3(k1).between(values.atPose3(k2), A1, B1)
+    d = 0.5 * (d0 + d1)
+    a0, a1 = d / d0, d / d1
+    z0, z1 = float(D0.translation()[2]), float(D1.translation()[2])
+    if H is not None:
+        # the translation's z under a local perturbation [w, v] of D: t' = t + R v
+        J0 = np.zeros((1, 6))
+        J0[0, 3:] = D0.rotation().matrix()[2, :]
+        J1 = np.zeros((1, 6))
+        J1[0, 3:] = D1.rotation().matrix()[2, :]
+        H[0] = -a0 * J0 @ A0
+        H[1] = -a0 * J0 @ B0 + a1 * J1 @ A1
+        H[2] = a1 * J1 @ B1
+    return np.array([a1 * z1 - a0 * z0])
+
+
+def climb_change_factor(cfg: BackendConfig, k: int, d0: float, d1: float) -> gtsam.CustomFactor:
+    """The wheel steps k-2 -> k-1 (``d0`` m) and k-1 -> k (``d1`` m) climb at the same rate, to
+    ``odometry.climb_sigma_per_m`` of their mean distance (at least ``climb_sigma_min_m``): the base drives on its
+    wheels along a floor whose slope changes slowly, whatever the constant tilt of T_base_cam's mount against it."""
+    o = cfg.odometry
+    sigma = max(o.climb_sigma_min_m, o.climb_sigma_per_m * 0.5 * (d0 + d1))
+    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, sigma), [X(k - 2), X(k - 1), X(k)],
+                              partial(_climb_change_error, float(d0), float(d1)))
 
 
 def wheel_step_sigmas(cfg: BackendConfig, planar_factor: gtsam.NoiseModelFactor, values: gtsam.Values,
