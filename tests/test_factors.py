@@ -260,7 +260,7 @@ def test_climb_change_factor_ties_two_steps_climb_rate_not_the_rate_itself():
         v2.insert(X(i), gtsam.Pose3(T))
     A, _ = f.linearize(v2).jacobian()
     eps, num = 1e-6, []
-    for key in f.keys():
+    for key in list(f.keys()):
         for j in range(6):
             d = np.zeros(6)
             d[j] = eps

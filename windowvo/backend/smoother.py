@@ -71,6 +71,7 @@ from .landmarks import LandmarkManager, reprojection_errors, reprojection_rms
 from .report import ScaleReport, scale_report, scale_sources
 from .road_region import RoadRegion
 from .wheel_calibration import WheelCalibrationStates
+from .wheel_climb import WheelClimb
 from .wheel_slip import WheelSlipSwitch
 
 log = logging.getLogger(__name__)
@@ -97,7 +98,7 @@ class SlidingWindowBackend:
         # The wheel calibration states C(k) (live once the floor is in view) and the ground cue.
         self.wheel = WheelCalibrationStates(cfg, use_odometry)
         self.slip = WheelSlipSwitch(cfg)  # a wheel step the window's solution rejects is switched off
-        self._wheel_step: tuple[int, float] | None = None  # the last wheel step tied: (keyframe, distance m)
+        self.climb = WheelClimb(cfg)  # odometry.climb_sigma_per_m: consecutive wheel steps' change of climb rate
         self.floor = FloorModel(camera, cfg, use_odometry, self.lm, self.kf_pose)
         self.vision = LandmarkFactors(camera, cfg, self.lm, self.floor, self.kf_pose, self.K, self.body_P_sensor)
         # ground.road_region (does nothing when off)
@@ -300,19 +301,10 @@ class SlidingWindowBackend:
                 # window's scale (a calibrated step): where the wheels alone set it, the solution's scale is theirs
                 # and a step cannot be judged against it (wheel_slip.py).
                 self.slip.expect(graph.size() - 1, k, odom, calib_key)
-            self._climb_factor(graph, k, odom.distance_m, restart)  # after the planar part the switch judges
+            self.climb.add(graph, k, odom.distance_m, restart, self.window_start(k))  # after the slip's index
             return
         delta = inv_T(self.kf_pose[k - 1]) @ T_guess
         graph.add(fac.monocular_motion_factor(k, delta, first_baseline=(k == 1 or restart) and not self.use_odometry))
-
-    def _climb_factor(self, graph, k: int, distance_m: float, restart: bool) -> None:
-        """``odometry.climb_sigma_per_m``: the wheel steps k-1 and k tied by their change of climb rate, when both
-        were driven (``CLIMB_MIN_STEP_M`` each) and keyframe k-2 stays in the window through this update."""
-        prev, self._wheel_step = self._wheel_step, (k, distance_m)
-        if (self.cfg.odometry.climb_sigma_per_m <= 0 or restart or prev is None or prev[0] != k - 1
-                or min(prev[1], distance_m) < fac.CLIMB_MIN_STEP_M or k - 2 <= self.window_start(k)):
-            return
-        graph.add(fac.climb_change_factor(self.cfg, k, prev[1], distance_m))
 
     def _update(self, fo: FrontendOutput, odom, T_guess, use_vision: bool, allow_new: bool) -> tuple[int, int, int]:
         """One keyframe: its pose and motion factors, its observations and new landmarks (with their ground
