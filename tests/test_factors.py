@@ -237,20 +237,23 @@ def test_a_pose_agrees_with_the_wheel_step_within_the_wheel_factors_own_threshol
 def test_climb_change_factor_ties_two_steps_climb_rate_not_the_rate_itself():
     cfg = BackendConfig(odometry={"climb_sigma_per_m": 0.01})
     # A base whose mount is pitched 1 deg against T_base_cam: every step climbs 1.7% in the set-up's base frame.
-    pitch = np.radians(-1.0)
-    R = rpy_to_R(0.0, pitch, 0.3)
-    x_axis = R[:, 0]
-    poses = [make_T(R, [0.0, 0.0, 0.0]), make_T(R, 0.4 * x_axis), make_T(R, 1.0 * x_axis)]
+    # The base drives on a level floor along its heading; its attitude (the set-up's base frame) is pitched 1 deg.
+    R = rpy_to_R(0.0, np.radians(-1.0), 0.3)
+    heading = np.array([np.cos(0.3), np.sin(0.3), 0.0])
+    poses = [make_T(R, [0.0, 0.0, 0.0]), make_T(R, 0.4 * heading), make_T(R, 1.0 * heading)]
     v = gtsam.Values()
     for i, T in enumerate(poses):
         v.insert(X(i), gtsam.Pose3(T))
+    climbs = [np.linalg.solve(poses[i], poses[i + 1])[2, 3] / d for i, d in enumerate((0.4, 0.6))]
+    assert np.abs(climbs) == pytest.approx([np.sin(np.radians(1.0))] * 2, rel=1e-9)  # 1.7% a step in the base frame
     f = fac.climb_change_factor(cfg, 2, 0.4, 0.6)
     assert list(f.keys()) == [X(0), X(1), X(2)]
     assert abs(f.unwhitenedError(v)[0]) < 1e-12  # the same climb rate: no residual however large the rate
     # The second step climbs 1 cm more than the first's rate says: 1 cm x (mean distance / its distance).
     v.update(X(2), gtsam.Pose3(poses[2] @ make_T(np.eye(3), [0.0, 0.0, 0.01])))
     assert f.unwhitenedError(v)[0] == pytest.approx(0.01 * 0.5 / 0.6, rel=1e-6)
-    assert f.noiseModel().sigmas()[0] == pytest.approx(0.005)  # 1% of 0.5 m is under the 5 mm floor
+    assert f.noiseModel().sigmas()[0] == pytest.approx(0.005)  # 1% of 0.5 m is the 5 mm floor
+    assert fac.climb_change_factor(cfg, 2, 0.1, 0.2).noiseModel().sigmas()[0] == pytest.approx(0.005)  # under it
     assert fac.climb_change_factor(cfg, 2, 2.0, 3.0).noiseModel().sigmas()[0] == pytest.approx(0.025)
     # Jacobians against numerical derivatives, at a generic point
     v2 = gtsam.Values()
@@ -269,3 +272,27 @@ def test_climb_change_factor_ties_two_steps_climb_rate_not_the_rate_itself():
             vm.update(key, v2.atPose3(key).retract(-d))
             num.append((f.unwhitenedError(vp)[0] - f.unwhitenedError(vm)[0]) / (2 * eps))
     assert np.allclose(A[0] * 0.005, num, atol=1e-6)
+
+
+def test_wheel_climb_ties_only_consecutive_driven_steps_inside_the_window():
+    from windowvo.backend.wheel_climb import WheelClimb
+
+    cfg = BackendConfig(odometry={"climb_sigma_per_m": 0.01})
+    climb, graph = WheelClimb(cfg), gtsam.NonlinearFactorGraph()
+    climb.add(graph, 5, 0.3, False, 0)  # no step before it
+    climb.add(graph, 6, 0.3, False, 0)
+    assert graph.size() == 1 and list(graph.at(0).keys()) == [X(4), X(5), X(6)]
+    climb.add(graph, 8, 0.3, False, 0)  # step 7 was not tied (no wheels there)
+    climb.add(graph, 9, 0.01, False, 0)  # standing still: no climb rate
+    climb.add(graph, 10, 0.3, False, 8)  # keyframe 8 is the window's oldest
+    climb.add(graph, 11, 0.3, True, 0)  # a restarted window
+    assert graph.size() == 1
+    climb.last = None  # what a window's reset does (SlidingWindowBackend.restart_window)
+    climb.add(graph, 12, 0.3, False, 0)
+    assert graph.size() == 1
+    climb.add(graph, 13, 0.3, False, 0)
+    assert graph.size() == 2
+    off, graph_off = WheelClimb(BackendConfig()), gtsam.NonlinearFactorGraph()
+    off.add(graph_off, 5, 0.3, False, 0)
+    off.add(graph_off, 6, 0.3, False, 0)
+    assert graph_off.size() == 0  # off by default

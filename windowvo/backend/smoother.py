@@ -284,9 +284,8 @@ class SlidingWindowBackend:
 
     def _motion_factors(self, graph, values, stamps, k: int, odom: OdometryStep | None, T_guess,
                         restart: bool = False) -> None:
-        """First-pose prior, wheel factors (through the calibration state) or a monocular motion prior; a
-        monocular run's first step, and its first step after a reset (``restart``: a fresh window whose only
-        other factor is the prior on the previous pose), also fix the gauge of scale by their length."""
+        """First-pose prior, wheel factors (through the calibration state) or a monocular motion prior; a monocular
+        run's first step and its first after a reset (``restart``: a fresh window) fix the gauge of scale by length."""
         if k == 0:
             graph.add(fac.first_pose_prior(X(0), np.eye(4)))
             return
@@ -454,6 +453,7 @@ class SlidingWindowBackend:
         self.lm.restart(k, fo.track_ids, fo.pixels_undistorted, fo.pixel_sigma_scale)
         self.floor.floor_frames.clear()  # the fresh smoother holds none
         self.floor.depth.reset()
+        self.climb.last = None  # nor the last wheel step's keyframe (tied again below when with_previous)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         stamps: dict[int, float] = {}
