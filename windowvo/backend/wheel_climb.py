@@ -18,8 +18,8 @@ class WheelClimb:
 
     def add(self, graph, k: int, distance_m: float, restart: bool, window_start: int) -> None:
         """Wheel step k-1 -> k (``distance_m``) was tied: tie it to step k-2 -> k-1 when that one was tied too, both
-        were driven (``CLIMB_MIN_STEP_M`` each), keyframe k-2 stays in the window through this update
-        (``window_start``: its oldest keyframe) and the window did not restart at k."""
+        were driven (``CLIMB_MIN_STEP_M`` each), keyframe k-2 is newer than the window's oldest after this update
+        (``window_start``; as the region's range factors) and the window did not restart at k."""
         prev, self.last = self.last, (k, distance_m)
         if (self.cfg.odometry.climb_sigma_per_m <= 0 or restart or prev is None or prev[0] != k - 1
                 or min(prev[1], distance_m) < fac.CLIMB_MIN_STEP_M or k - 2 <= window_start):
