@@ -202,7 +202,7 @@ class OdometryNoiseConfig(_Section):
                                      "must allow). 0 (default): off. 0.01 was measured: the scale suite's fused runs "
                                      "0.99x (rooms 0.94x, warehouses 0.93x: a flat room's height no longer drifts by "
                                      "centimetres; streets 1.06x, KITTI 1.10x); held out, rocking warehouses 0.71x, "
-                                     "warehouses 0.87x, KITTI 1.02x (docs/scale_suite.md, \"The wheels' climb rate\")")
+                                     "warehouses 0.87x, slipping rooms 1.21x, KITTI 1.02x (docs/scale_suite.md, \"The wheels' climb rate\")")
     climb_sigma_min_m: float = Field(0.005, gt=0, description="lower bound of that sigma (a base's bounce on its "
                                      "suspension)")
     robust: RobustKind = Field(RobustKind.CAUCHY, description="robust loss of the wheel factors (huber, cauchy, none); "
