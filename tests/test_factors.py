@@ -296,3 +296,22 @@ def test_wheel_climb_ties_only_consecutive_driven_steps_inside_the_window():
     off.add(graph_off, 5, 0.3, False, 0)
     off.add(graph_off, 6, 0.3, False, 0)
     assert graph_off.size() == 0  # off by default
+
+
+def test_a_slipping_wheel_step_loses_its_climb_tie_and_the_next_step_is_not_tied_to_it():
+    from windowvo.backend.wheel_climb import WheelClimb
+
+    climb, graph = WheelClimb(BackendConfig(odometry={"climb_sigma_per_m": 0.01})), gtsam.NonlinearFactorGraph()
+    climb.add(graph, 4, 0.3, False, 0)
+    assert climb.switched([40]) == []  # step 4 slipped but had no climb factor: nothing to remove
+    climb.add(graph, 5, 0.3, False, 0)  # nor is step 5 tied to it
+    assert graph.size() == 0
+    climb.add(graph, 6, 0.3, False, 0)
+    graph.add(gtsam.PriorFactorPose3(X(7), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1.0)))
+    climb.add(graph, 7, 0.3, False, 0)  # keyframe 7's update: a planar factor, then the climb factor in slot 2
+    assert graph.size() == 3
+    assert climb.switched([70, 71, 72]) == [72]  # step 7 slipped: the smoother's index of its climb factor
+    climb.add(graph, 8, 0.3, False, 0)  # step 8 is not tied to the slipping step
+    assert graph.size() == 3 and climb.slot is None
+    climb.add(graph, 9, 0.3, False, 0)
+    assert graph.size() == 4 and list(graph.at(3).keys()) == [X(7), X(8), X(9)]

@@ -382,16 +382,16 @@ class SlidingWindowBackend:
         """One smoother update (plus ``extra_iterations``) and the new estimate; the new factors' indices. The new
         wheel step is then judged on that estimate (``wheel_slip.py``; ``n_vis``: this keyframe's projection
         factors): a step taken for slip is replaced (its heading alone, or nothing) and the window solved again."""
-        ts_map = gtsam.FixedLagSmootherKeyTimestampMap()
+        ts_map, lap = gtsam.FixedLagSmootherKeyTimestampMap(), Laps()
         for key, t in stamps.items():
             ts_map.insert((key, t))
-        lap = Laps()
         try:
             idx = self.submit(graph, values, ts_map, remove)
             self._iterate(lap)
             switch = self.slip.judge(self.kf_frame[self.k], self.smoother, self.estimate, idx, n_vis)
             if switch is not None:
-                self.submit(switch[1], gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap(), [switch[0]])
+                self.submit(switch[1], gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap(),
+                            [switch[0], *self.climb.switched(idx)])
                 self._iterate(lap)
         except RuntimeError:
             # Undo the bookkeeping of this update before the caller resets the window.
