@@ -172,7 +172,8 @@ def test_landmark_budgets_follow_budget_keyframes(budget_keyframes, expected):
     from windowvo.camera import CameraModel
 
     cam = CameraModel(width=640, height=480, fx=340.0, fy=340.0, cx=320.0, cy=240.0)
-    cfg = BackendConfig(max_landmarks=10, window_keyframes=20, budget_keyframes=budget_keyframes)
+    cfg = BackendConfig(max_landmarks=10, window_keyframes=20, budget_keyframes=budget_keyframes,
+                        min_landmarks_in_view=0)  # the budget alone (its top-up is the next test's)
     cfg.ground.max_landmarks = 4
     lm = LandmarkManager(cam, cfg)
     for tid, (last_kf, floor) in enumerate([(3, False), (7, False), (9, False), (2, True), (9, True)]):

@@ -573,13 +573,13 @@ class BackendConfig(_Section):
         "(none: window_keyframes; 1: only landmarks the previous keyframe still saw, so landmarks whose tracks ended "
         "do not block new ones); auto (default): 1 without wheels, where vision carries the motion and more "
         "landmarks help, none with wheels, where more landmarks let Huber's outliers add up (docs/scale_suite.md)")
-    min_landmarks_in_view: int = Field(0, ge=0, le=5000, description="new landmarks are admitted beyond the "
+    min_landmarks_in_view: int = Field(20, ge=0, le=5000, description="new landmarks are admitted beyond the "
                                        "landmark budget while fewer than this many of the window's landmarks (off "
                                        "the floor) were seen by the previous keyframe: on a fast street, tracks end "
                                        "within a few keyframes and, with wheels (budget_keyframes auto), the budget "
-                                       "fills with landmarks out of view, leaving keyframes with no projection "
-                                       "factors for a window's length (0: the budget alone; 80 measured, "
-                                       "docs/scale_suite.md)")
+                                       "fills with landmarks out of view, leaving keyframes with 0-3 projection "
+                                       "factors for a window's length, where slipping wheels go unjudged (0: the "
+                                       "budget alone; 20, 40 and 80 measured, docs/scale_suite.md)")
     landmark_model: LandmarkModel = Field(LandmarkModel.EXPLICIT, description="landmarks off the floor: explicit (a "
                                           "point state and robust projection factors each) or smart (GTSAM smart "
                                           "projection factors, no point state; Gaussian pixel noise with the "
