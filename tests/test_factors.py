@@ -308,7 +308,7 @@ def test_a_slipping_wheel_step_loses_its_climb_tie_and_the_next_step_is_not_tied
     assert graph.size() == 0
     climb.add(graph, 6, 0.3, False, 0)
     graph.add(gtsam.PriorFactorPose3(X(7), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1.0)))
-    climb.add(graph, 7, 0.3, False, 0)  # keyframe 7's update: a planar factor, then the climb factor in slot 2
+    climb.add(graph, 7, 0.3, False, 0)  # slots: 0 step 6's climb factor, 1 a planar factor's stand-in, 2 step 7's
     assert graph.size() == 3
     assert climb.switched([70, 71, 72]) == [72]  # step 7 slipped: the smoother's index of its climb factor
     climb.add(graph, 8, 0.3, False, 0)  # step 8 is not tied to the slipping step

@@ -267,8 +267,8 @@ def test_while_the_wheels_slip_the_next_keyframe_starts_from_vision(in_slip):
 def test_a_fast_street_whose_landmarks_end_within_keyframes_keeps_vision_in_view_by_default(seq_factory, tmp_path):
     """A street at 10 m/s whose wheels slip (a held-out sequence of ``scripts/road_region_seeds.py --cases slip``):
     tracks end within a few keyframes, and with wheels the landmark budget counts a landmark while any of the
-    window's keyframes saw it, so it fills with landmarks out of view and keyframes 10-22 get 0-21 projection
-    factors; the slip then goes unjudged and the run follows it (4.7 m, worse than the wheels alone).
+    window's keyframes saw it, so it fills with landmarks out of view and keyframes 12-23 keep 1-16 of its
+    landmarks in view; the slip then goes unjudged and the run follows it (5.4 m, worse than the wheels alone).
     ``backend.min_landmarks_in_view`` (default 20) admits new landmarks while few are in view; the default run must
     gain at least 4x over the budget alone and beat the wheels' dead reckoning."""
     spec = {"path": "straight", "seed": 342, "duration_s": 8.0, **ss.STREET_IMAGE,
@@ -284,3 +284,42 @@ def test_a_fast_street_whose_landmarks_end_within_keyframes_keeps_vision_in_view
           f"the wheels alone {wheels_alone:.3f} m")
     assert on.ate_se3_rmse_m <= 0.25 * off.ate_se3_rmse_m
     assert on.ate_se3_rmse_m < wheels_alone
+
+
+def test_the_smoother_removes_a_slipping_steps_climb_factor_with_its_planar_one():
+    """With ``backend.odometry.climb_sigma_per_m`` on, a step the switch takes out loses its climb factor in the same
+    update (``WheelClimb.switched``), and the next step is not tied to it: feature-level loop, wheels slipping."""
+    from windowvo.backend.smoother import SlidingWindowBackend
+    from windowvo.synth.features import simulate_features
+    from windowvo.synth.generate import SynthSpec
+
+    spec = SynthSpec(path=PathKind.LOOP, duration_s=60.0, speed=0.8, seed=3,
+                     wheel=WheelErrorModel(scale_error=-0.01, slip_windows=[(15.0, 18.0, 0.5), (40.0, 42.0, 0.4)]))
+    fs = simulate_features(spec, pixel_noise=0.5)
+    be = SlidingWindowBackend(fs.world.camera, BackendConfig(odometry={"climb_sigma_per_m": 0.01}),
+                              use_odometry=True)
+    removed: list[tuple[int, list[int]]] = []
+    switched = be.climb.switched
+
+    def recording(new_indices: list[int]) -> list[int]:
+        out = switched(new_indices)
+        removed.append((be.k, out))
+        return out
+
+    be.climb.switched = recording
+    climb_keys: list[set[int]] = []
+    for i, fo in enumerate(fs.keyframes):
+        n_before = len(removed)
+        be.add_keyframe(fo, fs.odometry_step(i))
+        factors = be.smoother.getFactors()
+        for k, indices in removed[n_before:]:  # gone from the smoother (a later update may reuse the slot)
+            assert all(factors.at(j) is None for j in indices), (k, indices)
+        for j in range(factors.size()):
+            keys = [] if factors.at(j) is None else list(factors.at(j).keys())
+            if len(keys) == 3 and all(chr(gtsam.Symbol(key).chr()) == "x" for key in keys):
+                climb_keys.append(set(keys))  # a factor on three poses: a climb factor
+    tied = [k for k, indices in removed if indices]
+    assert tied, removed  # switched steps that had a climb factor
+    for k, _ in removed:  # no later climb factor spans the switched step k-1 -> k
+        assert not [keys for keys in climb_keys if {X(k - 1), X(k)} <= keys and X(k + 1) in keys], k
+    assert be.n_resets == 0

@@ -577,9 +577,10 @@ class BackendConfig(_Section):
                                        "landmark budget while fewer than this many of the window's landmarks (off "
                                        "the floor) were seen by the previous keyframe: on a fast street, tracks end "
                                        "within a few keyframes and, with wheels (budget_keyframes auto), the budget "
-                                       "fills with landmarks out of view, leaving keyframes with 0-3 projection "
-                                       "factors for a window's length, where slipping wheels go unjudged (0: the "
-                                       "budget alone; 20, 40 and 80 measured, docs/scale_suite.md)")
+                                       "fills with landmarks out of view, leaving keyframes with 0-6 landmarks in "
+                                       "view for a window's length, where slipping wheels go unjudged (capped at "
+                                       "max_landmarks; 0: the budget alone; 20, 40 and 80 measured, "
+                                       "docs/scale_suite.md)")
     landmark_model: LandmarkModel = Field(LandmarkModel.EXPLICIT, description="landmarks off the floor: explicit (a "
                                           "point state and robust projection factors each) or smart (GTSAM smart "
                                           "projection factors, no point state; Gaussian pixel noise with the "

@@ -195,13 +195,13 @@ class LandmarkManager:
         """Room left for new landmarks: (others, floor landmarks). Only landmarks seen by keyframe
         ``seen_since`` or later count (those waiting for their block's marginalisation do not). With
         ``in_view_since`` and ``min_landmarks_in_view``: the others' room is at least what brings the landmarks
-        seen by keyframe ``in_view_since`` or later (those still in view) up to that minimum."""
+        seen by keyframe ``in_view_since`` or later (those still in view) up to that minimum (at most ``max_landmarks``)."""
         live = [lm for lm in self.landmarks.values() if lm.last_kf >= seen_since]
         n_floor = sum(1 for lm in live if lm.on_ground)
         room = self.cfg.max_landmarks - (len(live) - n_floor)
         if in_view_since is not None and self.cfg.min_landmarks_in_view > 0:
             in_view = sum(1 for lm in self.landmarks.values() if lm.last_kf >= in_view_since and not lm.on_ground)
-            room = max(room, self.cfg.min_landmarks_in_view - in_view)
+            room = max(room, min(self.cfg.min_landmarks_in_view, self.cfg.max_landmarks) - in_view)
         return room, max_floor - n_floor
 
     # ------------------------------------------------------------------ triangulation

@@ -17,7 +17,8 @@ it (a switchable constraint whose switch is decided once, on the solution, inste
 linearization). A slip is a distance error: when the step's heading alone agrees with the solution (its own 1-D
 residual within the chi-square threshold) the heading is kept and only the distance left free; otherwise (a
 skid) nothing of the step's plane is kept. The step's vertical part stays ("the robot drives on its wheels": loose, it keeps the window
-linked), and so does the calibration state's random walk, so no key loses its factors. A switched step is left
+linked), and so does the calibration state's random walk, so no key loses its factors; its climb tie
+(``backend.odometry.climb_sigma_per_m``, ``wheel_climb.py``) goes with the planar factor. A switched step is left
 out of the floor-against-wheels test (``cue_check.py``): a slipping wheel says nothing about the tyre's scale.
 
 Only a step that goes through the wheel calibration is judged, i.e. once the floor is in view and holds the
