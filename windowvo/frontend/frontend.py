@@ -18,6 +18,7 @@ across a change in part of the view, which keeps the grey levels elsewhere (and 
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -27,12 +28,15 @@ import cv2
 import numpy as np
 
 from ..camera import CameraModel
-from ..config import FrontendConfig, GateConfig, KeyframeConfig, TrackerKind
+from ..config import DetectionOrder, FrontendConfig, GateConfig, KeyframeConfig, TrackerKind
 from ..runtime.stage_timer import Laps, Stage, section
 from ..types import Frame, FrontendOutput, KeyframeReason
 from .gates import MIN_COMMON_TRACKS, TrackShare, apply_gates, keyframe_reason
+from .rocking import ROCKING_NOTE, RockingCheck
 from .tracker import KLTTracker, ORBTracker, cell_counts
 from .two_view import TwoViewResult, essential_ransac, recover_relative_pose
+
+log = logging.getLogger(__name__)
 
 # Gain normalisation. Exposure changes are measured on a grid of cells (columns, rows): the cells whose mean
 # grey ratio to the previous frame lies within GAIN_AGREE_LOG (log) of one another agree on one; at least
@@ -248,7 +252,10 @@ class Frontend:
         kf_cfg: KeyframeConfig,
         gate_cfg: GateConfig,
         static_mask: np.ndarray | None = None,
+        rocking_switch: bool = False,
     ):
+        """``rocking_switch``: rows-first detection that turns to spread once the base is found rocking
+        (``RockingCheck``; with wheels and ``detection_order: auto``)."""
         self.camera = camera
         self.cfg = cfg
         self.kf_cfg = kf_cfg
@@ -268,6 +275,12 @@ class Frontend:
         self.focal = 0.5 * (camera.fx + camera.fy)
         self._prev_ids: np.ndarray | None = None  # the last processed frame's tracks and rays (the frame-to-frame flow)
         self._prev_xn: np.ndarray | None = None
+        self._prev_t: float | None = None
+        self.rocking: RockingCheck | None = None
+        self.rocking_note = ""  # set at the frame the base is found rocking, until the caller takes it
+        if rocking_switch and cfg.rocking_rate_deg_s is not None:
+            self.rocking = RockingCheck(camera.T_base_cam[:3, :3], self.focal, cfg.rocking_frames,
+                                        cfg.rocking_rate_deg_s, cfg.ransac_threshold_px, cfg.ransac_confidence)
 
     def mask_of(self, frame: Frame) -> np.ndarray | None:
         """The frame's usable pixels (uint8, 0 where features are forbidden): the static mask, the field of view and
@@ -304,7 +317,7 @@ class Frontend:
             n_detected=tracks.n_detected,
             spread=self.spread(tracks.pixels),
             pixel_sigma_scale=pixel_sigma_scale(self.camera, tracks.pixels),
-            flow_px=self._flow_since_last_frame(tracks.ids, xn),
+            flow_px=self._flow_since_last_frame(tracks.ids, xn, frame.timestamp),
         )
         lap(Stage.UNDISTORTION)  # mostly the undistorted pixels and their noise scales
         if two_view is not None:
@@ -330,18 +343,33 @@ class Frontend:
         out.frontend_ms = (time.perf_counter() - t0) * 1000.0
         return out
 
-    def _flow_since_last_frame(self, ids: np.ndarray, xn: np.ndarray) -> float:
+    def _flow_since_last_frame(self, ids: np.ndarray, xn: np.ndarray, t: float) -> float:
         """Median image motion (pixels of an ideal pinhole camera) of the tracks shared with the last processed
         frame; nan with fewer than ``MIN_COMMON_TRACKS`` of them. It grows with the speed (over the scene's depth):
-        the wheel clock compares its changes with the wheels' (``backend/wheel_clock.py``)."""
-        prev_ids, prev_xn = self._prev_ids, self._prev_xn
-        self._prev_ids, self._prev_xn = ids.copy(), xn.copy()
+        the wheel clock compares its changes with the wheels' (``backend/wheel_clock.py``). The rocking test sees the
+        same pair of frames (``_judge_rocking``)."""
+        prev_ids, prev_xn, prev_t = self._prev_ids, self._prev_xn, self._prev_t
+        self._prev_ids, self._prev_xn, self._prev_t = ids.copy(), xn.copy(), t
         if prev_ids is None or prev_xn is None:
             return float("nan")
         _, i_cur, i_prev = np.intersect1d(ids, prev_ids, assume_unique=True, return_indices=True)
         if len(i_cur) < MIN_COMMON_TRACKS:
             return float("nan")
-        return float(np.median(np.linalg.norm(xn[i_cur] - prev_xn[i_prev], axis=1))) * self.focal
+        flow = float(np.median(np.linalg.norm(xn[i_cur] - prev_xn[i_prev], axis=1))) * self.focal
+        if self.rocking is not None and prev_t is not None:
+            self._judge_rocking(t - prev_t, prev_ids, prev_xn, ids, xn, flow)
+        return flow
+
+    def _judge_rocking(self, dt: float, prev_ids: np.ndarray, prev_xn: np.ndarray, ids: np.ndarray, xn: np.ndarray,
+                       flow: float) -> None:
+        """Feed the rocking test; once it finds the base rocking, new corners spread over the floor from here on."""
+        assert self.rocking is not None
+        if self.rocking.observe(dt, prev_ids, prev_xn, ids, xn, flow):
+            self.cfg = self.cfg.model_copy(update={"detection_order": DetectionOrder.SPREAD})
+            self.tracker.cfg = self.cfg
+            self.rocking_note = (f"{ROCKING_NOTE} (vision's tilt rate {self.rocking.median_rate_deg_s:.1f} deg/s): new "
+                                 "corners spread over the floor")
+            log.info(self.rocking_note)
 
     def _track(self, frame: Frame):
         """The frame's tracks (after the gain normalisation) and their normalised rays; tracks past the

@@ -149,7 +149,8 @@ def resolve_detection_order(order: DetectionOrder, floor_only_scale: bool) -> De
     """``auto``: spread when the floor is the run's only scale source (no wheel odometry, ground cue on):
     its landmarks then carry the scale, and a top-first detection leaves the floor's rows almost empty
     on a road; rows otherwise (measured on KITTI with wheels: the spread put the scale on grass and
-    kerbs a few centimetres above the road, 06 with +2% wheels 0.31 -> 0.72 m)."""
+    kerbs a few centimetres above the road, 06 with +2% wheels 0.31 -> 0.72 m). With wheels the front end turns rows to
+    spread later if the base rocks on its suspension (``frontend/rocking.py``)."""
     if order is not DetectionOrder.AUTO:
         return order
     return DetectionOrder.SPREAD if floor_only_scale else DetectionOrder.ROWS

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..backend.ground import levelled_mount, normal_from_tilt_deg, tilt_significant
 from ..config import Config, save_config
+from ..frontend.rocking import ROCKING_NOTE
 from ..io.trajectory import write_tum
 from ..types import FrameRecord
 from .outfolder import FIRST_PASS_DIR
@@ -102,6 +103,12 @@ def cue_summary(records: list[FrameRecord]) -> dict | None:
             "disagreement_median": round(float(np.median([rec.cue_disagreement for rec in tested])), 5),
             "disagree_at_end": None if since is None else round(tested[-1].cue_disagreement, 5),
             "disagree_since_frame": None if since is None else since.frame_index}
+
+
+def corners_spread_from_frame(records: list[FrameRecord]) -> int | None:
+    """The frame at which the front end found the base rocking on its suspension and turned its detection to spread
+    (``frontend/rocking.py``); None: it did not (no wheels, a level base, or a detection order set)."""
+    return next((rec.frame_index for rec in records if ROCKING_NOTE in rec.note), None)
 
 
 def slip_summary(records: list[FrameRecord]) -> dict | None:
@@ -227,6 +234,7 @@ def summary_dict(report: JobReport, cfg: Config) -> dict:
         **floor_summary(r.records, report.sequence.camera.T_base_cam),
         "cue_check": cue_summary(r.records),
         "wheel_slip": slip_summary(r.records),
+        "corners_spread_from_frame": corners_spread_from_frame(r.records),
         "accuracy": report.accuracy.as_dict() if report.accuracy is not None else None,
         "accuracy_online": report.online_accuracy.as_dict() if report.online_accuracy is not None else None,
         "wheel_only_accuracy": report.wheel_accuracy.as_dict() if report.wheel_accuracy is not None else None,

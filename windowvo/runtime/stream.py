@@ -40,7 +40,7 @@ import numpy as np
 from ..backend.report import ScaleReport, plan_scale
 from ..backend.wheel_clock import ClockEstimate, WheelClock
 from ..camera import CameraModel
-from ..config import Config, WheelClockMode, load_robot_config, robot_config_from_dict
+from ..config import Config, DetectionOrder, WheelClockMode, load_robot_config, robot_config_from_dict
 from ..errors import WindowVOError
 from ..frontend.frontend import Frontend
 from ..frontend.tracker import resolve_detection_order
@@ -138,8 +138,10 @@ class Odometry:
             self.backend = backend if backend is not None else _new_backend(camera, cfg, self.use_odometry)
         floor_only = self.plan.use_ground and not self.use_odometry  # the floor is the only scale source
         order = resolve_detection_order(cfg.frontend.detection_order, floor_only)
+        # With wheels and the floor, rows first unless the base rocks on its suspension (frontend/rocking.py).
+        rocking_switch = cfg.frontend.detection_order is DetectionOrder.AUTO and self.plan.use_ground and not floor_only
         self.frontend = Frontend(camera, cfg.frontend.model_copy(update={"detection_order": order}), cfg.keyframes,
-                                 cfg.gates, static_mask)
+                                 cfg.gates, static_mask, rocking_switch)
         self.wheels = WheelBuffer(extrapolate_s=cfg.backend.odometry.max_gap_s, comment=wheel_comment)
         self.wheels.max_speed_m_s = cfg.backend.odometry.max_speed_m_s
         # The wheels' clock against the camera's, from vision's heading changes over CLOCK_SPAN_S; the wheels are read
@@ -243,7 +245,10 @@ class Odometry:
         if self.clock is not None and self._last_frontend_t is not None:  # the image's motion since the frame before
             self.clock.add_flow(self._last_frontend_t, float(t), fo.flow_px)
         self._last_frontend_t = float(t)
-        odom, note = None, ""
+        odom, note = None, self.frontend.rocking_note
+        if note:
+            self.notes.append(note)
+            self.frontend.rocking_note = ""
         if fo.is_keyframe:
             if self.cfg.backend.ground.road_region.enabled:  # a copy: the caller may reuse its buffer
                 fo.image, fo.image_mask = image.copy(), self.frontend.mask_of(frame)
