@@ -275,7 +275,6 @@ class Frontend:
         self.focal = 0.5 * (camera.fx + camera.fy)
         self._prev_ids: np.ndarray | None = None  # the last processed frame's tracks and rays (the frame-to-frame flow)
         self._prev_xn: np.ndarray | None = None
-        self._prev_t: float | None = None
         self.rocking: RockingCheck | None = None
         self.rocking_note = ""  # set at the frame the base is found rocking, until the caller takes it
         if rocking_switch and cfg.rocking_rate_deg_s is not None:
@@ -317,9 +316,12 @@ class Frontend:
             n_detected=tracks.n_detected,
             spread=self.spread(tracks.pixels),
             pixel_sigma_scale=pixel_sigma_scale(self.camera, tracks.pixels),
-            flow_px=self._flow_since_last_frame(tracks.ids, xn, frame.timestamp),
+            flow_px=self._flow_since_last_frame(tracks.ids, xn),
         )
         lap(Stage.UNDISTORTION)  # mostly the undistorted pixels and their noise scales
+        if self.rocking is not None:
+            self._judge_rocking(frame.timestamp, tracks.ids, xn)
+            lap(Stage.RANSAC)
         if two_view is not None:
             out.inlier_ratio = float(two_view.inlier_mask.mean())
         reason = KeyframeReason.FIRST
@@ -343,32 +345,28 @@ class Frontend:
         out.frontend_ms = (time.perf_counter() - t0) * 1000.0
         return out
 
-    def _flow_since_last_frame(self, ids: np.ndarray, xn: np.ndarray, t: float) -> float:
+    def _flow_since_last_frame(self, ids: np.ndarray, xn: np.ndarray) -> float:
         """Median image motion (pixels of an ideal pinhole camera) of the tracks shared with the last processed
         frame; nan with fewer than ``MIN_COMMON_TRACKS`` of them. It grows with the speed (over the scene's depth):
-        the wheel clock compares its changes with the wheels' (``backend/wheel_clock.py``). The rocking test sees the
-        same pair of frames (``_judge_rocking``)."""
-        prev_ids, prev_xn, prev_t = self._prev_ids, self._prev_xn, self._prev_t
-        self._prev_ids, self._prev_xn, self._prev_t = ids.copy(), xn.copy(), t
+        the wheel clock compares its changes with the wheels' (``backend/wheel_clock.py``)."""
+        prev_ids, prev_xn = self._prev_ids, self._prev_xn
+        self._prev_ids, self._prev_xn = ids.copy(), xn.copy()
         if prev_ids is None or prev_xn is None:
             return float("nan")
         _, i_cur, i_prev = np.intersect1d(ids, prev_ids, assume_unique=True, return_indices=True)
         if len(i_cur) < MIN_COMMON_TRACKS:
             return float("nan")
-        flow = float(np.median(np.linalg.norm(xn[i_cur] - prev_xn[i_prev], axis=1))) * self.focal
-        if self.rocking is not None and prev_t is not None:
-            self._judge_rocking(t - prev_t, prev_ids, prev_xn, ids, xn, flow)
-        return flow
+        return float(np.median(np.linalg.norm(xn[i_cur] - prev_xn[i_prev], axis=1))) * self.focal
 
-    def _judge_rocking(self, dt: float, prev_ids: np.ndarray, prev_xn: np.ndarray, ids: np.ndarray, xn: np.ndarray,
-                       flow: float) -> None:
-        """Feed the rocking test; once it finds the base rocking, new corners spread over the floor from here on."""
+    def _judge_rocking(self, t: float, ids: np.ndarray, xn: np.ndarray) -> None:
+        """Feed the rocking test; once it finds the base rocking, new corners are detected spread over the image
+        (bottom rows first) from the next frame on."""
         assert self.rocking is not None
-        if self.rocking.observe(dt, prev_ids, prev_xn, ids, xn, flow):
+        if self.rocking.observe(t, ids, xn):
             self.cfg = self.cfg.model_copy(update={"detection_order": DetectionOrder.SPREAD})
             self.tracker.cfg = self.cfg
             self.rocking_note = (f"{ROCKING_NOTE} (vision's tilt rate {self.rocking.median_rate_deg_s:.1f} deg/s): new "
-                                 "corners spread over the floor")
+                                 "corners spread over the image")
             log.info(self.rocking_note)
 
     def _track(self, frame: Frame):

@@ -11,9 +11,10 @@ twelve held out, but a rocking straight street 1.8-2.0x.
 
 The decision is taken once, on the run's first ``rocking_frames`` frames that move: switched later, the window holds
 the top rows' landmarks for its whole length and most of the gain is lost (stop 61's switch on the back end's rocking
-test, measured). The test: vision's rotation between consecutive frames (essential matrix of their shared tracks),
-its part about the base's horizontal axes (``T_base_cam``) as a rate; the base rocks when the median rate exceeds
-``rocking_rate_deg_s``. Measured on the first frames: the level rendered runs 0.04-0.15 deg/s, KITTI 06 and 01 (a
+test, measured). The test: vision's rotation between two frames at least ``MIN_INTERVAL_S`` apart (consecutive ones
+at 10-20 Hz; the essential matrix of their shared tracks, the smaller of its two rotations: over so short a baseline
+the cheirality test sometimes picks the one half a turn off), its part about the base's horizontal axes
+(``T_base_cam``) as a rate; the base rocks when the median rate exceeds ``rocking_rate_deg_s``. Measured on the first frames: the level rendered runs 0.04-0.15 deg/s, KITTI 06 and 01 (a
 real car) 0.39 and 1.92, the rendered suspensions (0.7-2 deg at 1.7-5.1 Hz) 5.3-27.
 """
 
@@ -25,14 +26,24 @@ import cv2
 import numpy as np
 
 from .gates import MIN_COMMON_TRACKS
-from .two_view import essential_ransac, recover_relative_pose
+from .two_view import essential_ransac
 
 # The note the run's stats.csv carries at the frame the base is found rocking (``summary.json``'s
 # ``corners_spread_from_frame`` finds it there).
 ROCKING_NOTE = "the base rocks on its suspension"
-# Frames whose tracks moved less than this since the last one (median, pixels) tell no rotation from the essential
-# matrix reliably (nor does a base at rest rock): they are not counted.
+# Two frames whose shared tracks moved less than this (median, pixels of the ideal pinhole camera) tell no rotation
+# from the essential matrix reliably (nor does a base at rest rock): the pair is not counted.
 MIN_FLOW_PX = 1.0
+# The frames compared are at least this far apart (s): consecutive frames at 10-20 Hz; at a higher frame rate the
+# per-frame angle's noise would weigh more in the rate, and a slow robot's per-frame motion stay under MIN_FLOW_PX.
+MIN_INTERVAL_S = 0.045
+
+
+def smaller_rotation(E: np.ndarray) -> np.ndarray:
+    """The one of an essential matrix's two rotations that turns less (``cv2.decomposeEssentialMat``): between frames
+    a fraction of a second apart the camera turns by a few degrees at most, the other is half a turn off."""
+    R1, R2, _ = cv2.decomposeEssentialMat(E)
+    return R1 if np.trace(R1) >= np.trace(R2) else R2
 
 
 @dataclass
@@ -41,44 +52,52 @@ class RockingCheck:
 
     R_base_cam: np.ndarray
     focal: float
-    frames: int  # frontend.rocking_frames: the moving frames judged
-    rate_deg_s: float  # frontend.rocking_rate_deg_s: the median tilt rate above which the base rocks
-    threshold_px: float = 0.5  # the essential matrix's RANSAC threshold (frontend.ransac_threshold_px)
-    confidence: float = 0.999
-    rates: list[float] = field(default_factory=list)  # deg/s, one per moving frame judged
+    frames: int  # frontend.rocking_frames: the frame pairs judged
+    threshold_deg_s: float  # frontend.rocking_rate_deg_s: the median tilt rate above which the base rocks
+    ransac_threshold_px: float = 0.5  # the essential matrix's RANSAC threshold (frontend.ransac_threshold_px)
+    ransac_confidence: float = 0.999
+    rates_deg_s: list[float] = field(default_factory=list)  # one per frame pair judged
     rocks: bool | None = None  # None until decided
+    _ref: tuple[float, np.ndarray, np.ndarray] | None = None  # (time, track ids, rays) of the frame compared against
 
-    def observe(self, dt: float, prev_ids: np.ndarray | None, prev_xn: np.ndarray | None, ids: np.ndarray,
-                xn: np.ndarray, flow_px: float) -> bool:
-        """One frame, ``dt`` seconds after the last (its shared tracks' rays ``prev_xn`` then, ``xn`` now, and their
-        median ``flow_px``). True once: at the frame that decides the base rocks."""
-        if self.rocks is not None or prev_ids is None or prev_xn is None or not dt > 0:
+    def observe(self, t: float, ids: np.ndarray, xn: np.ndarray) -> bool:
+        """One frame at time ``t``: its tracks' ids and normalised rays. True once: at the frame that decides the base
+        rocks."""
+        if self.rocks is not None:
             return False
-        if not flow_px >= MIN_FLOW_PX:
+        if self._ref is None:
+            self._ref = (t, ids.copy(), xn.copy())
             return False
-        rate = self._tilt_rate(dt, prev_ids, prev_xn, ids, xn)
+        t_ref, ids_ref, xn_ref = self._ref
+        if t - t_ref < MIN_INTERVAL_S:
+            return False
+        self._ref = (t, ids.copy(), xn.copy())
+        _, i_cur, i_ref = np.intersect1d(ids, ids_ref, assume_unique=True, return_indices=True)
+        if len(i_cur) < MIN_COMMON_TRACKS:
+            return False
+        rate = self._tilt_rate_deg_s(t - t_ref, xn_ref[i_ref].astype(np.float64), xn[i_cur].astype(np.float64))
         if rate is None:
             return False
-        self.rates.append(rate)
-        if len(self.rates) < self.frames:
+        self.rates_deg_s.append(rate)
+        if len(self.rates_deg_s) < self.frames:
             return False
-        self.rocks = bool(np.median(self.rates) > self.rate_deg_s)
+        self.rocks = bool(np.median(self.rates_deg_s) > self.threshold_deg_s)
         return self.rocks
 
     @property
     def median_rate_deg_s(self) -> float:
-        return float(np.median(self.rates)) if self.rates else float("nan")
+        return float(np.median(self.rates_deg_s)) if self.rates_deg_s else float("nan")
 
-    def _tilt_rate(self, dt: float, prev_ids: np.ndarray, prev_xn: np.ndarray, ids: np.ndarray,
-                   xn: np.ndarray) -> float | None:
-        """The rotation between the two frames about the base's horizontal axes, deg/s; None: not measured."""
-        _, i_cur, i_prev = np.intersect1d(ids, prev_ids, assume_unique=True, return_indices=True)
-        if len(i_cur) < MIN_COMMON_TRACKS:
+    def _tilt_rate_deg_s(self, dt: float, xn_ref_shared: np.ndarray, xn_cur_shared: np.ndarray) -> float | None:
+        """The rotation between the two frames about the base's horizontal axes, deg/s; None: the pair tells none
+        (its tracks moved too little, or no essential matrix)."""
+        flow_px = float(np.median(np.linalg.norm(xn_cur_shared - xn_ref_shared, axis=1))) * self.focal
+        if not flow_px >= MIN_FLOW_PX:
             return None
-        a, b = prev_xn[i_prev].astype(np.float64), xn[i_cur].astype(np.float64)
-        res = recover_relative_pose(essential_ransac(a, b, self.focal, self.threshold_px, self.confidence), a, b,
-                                    self.focal)
-        if res.R_cur_kf is None:
+        two_view = essential_ransac(xn_ref_shared, xn_cur_shared, self.focal, self.ransac_threshold_px,
+                                    self.ransac_confidence)
+        if two_view.E is None:
             return None
-        w_base = self.R_base_cam @ cv2.Rodrigues(res.R_cur_kf)[0].ravel()
+        R_cur_ref = smaller_rotation(two_view.E)
+        w_base = self.R_base_cam @ cv2.Rodrigues(R_cur_ref)[0].ravel()  # the rotation vector in the base's axes
         return float(np.degrees(np.hypot(w_base[0], w_base[1])) / dt)

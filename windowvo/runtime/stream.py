@@ -256,7 +256,7 @@ class Odometry:
             self._update_offset(float(t))
             odom = self._odom_step(self.last_kf_time, t) if self.last_kf_time is not None else None
             if odom is not None and not odom.ok:
-                note = "odometry gap: vision only"
+                note = _join_notes(note, "odometry gap: vision only")
             self.kf_frames.append(idx)
             self.kf_times.append(float(t))
             self.last_kf_time = float(t)
