@@ -158,7 +158,7 @@ def test_a_rocking_warehouse_base_with_wheels_beats_its_wheels_with_its_floor_co
     frame = corners_spread_from_frame(spread.result.records)  # summary.json's key
     assert frame is not None and frame < 20, frame
     assert corners_spread_from_frame(rows.result.records) is None
-    print(f"rocking warehouse loop: spread {spread.accuracy.ate_se3_rmse_m:.4f} m, rows {rows.accuracy.ate_se3_rmse_m:.4f}"
-          f" m, wheels alone {spread.wheel_accuracy.ate_se3_rmse_m:.4f} m")
+    print(f"rocking warehouse loop: spread {spread.accuracy.ate_se3_rmse_m:.4f} m, "
+          f"rows {rows.accuracy.ate_se3_rmse_m:.4f} m, wheels alone {spread.wheel_accuracy.ate_se3_rmse_m:.4f} m")
     assert spread.accuracy.ate_se3_rmse_m <= 0.5 * rows.accuracy.ate_se3_rmse_m
     assert spread.accuracy.ate_se3_rmse_m < spread.wheel_accuracy.ate_se3_rmse_m

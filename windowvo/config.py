@@ -145,8 +145,9 @@ class FrontendConfig(_Section):
         4.0, gt=0, description="with wheel odometry and detection_order auto: vision's tilt rate (rotation about the "
         "base's horizontal axes between frames at least 45 ms apart, median over the run's first rocking_frames such "
         "pairs that move) above which the base is taken to rock on its suspension, and new corners spread over the "
-        "image (bottom rows first) for the whole run (its points then measure each keyframe's tilt against the floor); measured: level rendered runs "
-        "0.04-0.15 deg/s, KITTI 0.4-1.9, rendered suspensions 5.3-27. null: rows always")
+        "image (bottom rows first) for the whole run (its points then measure each keyframe's tilt against the "
+        "floor); measured: level rendered runs 0.04-0.15 deg/s, KITTI 0.4-1.9, rendered suspensions 5.3-27. null: "
+        "rows always")
     rocking_frames: int = Field(8, ge=3, le=200, description="pairs of frames that move (median track motion of 1 px "
                                 "or more) the rocking test of rocking_rate_deg_s judges, at the start of the run")
 

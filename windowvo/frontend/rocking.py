@@ -14,8 +14,9 @@ the top rows' landmarks for its whole length and most of the gain is lost (stop 
 test, measured). The test: vision's rotation between two frames at least ``MIN_INTERVAL_S`` apart (consecutive ones
 at 10-20 Hz; the essential matrix of their shared tracks, the smaller of its two rotations: over so short a baseline
 the cheirality test sometimes picks the one half a turn off), its part about the base's horizontal axes
-(``T_base_cam``) as a rate; the base rocks when the median rate exceeds ``rocking_rate_deg_s``. Measured on the first frames: the level rendered runs 0.04-0.15 deg/s, KITTI 06 and 01 (a
-real car) 0.39 and 1.92, the rendered suspensions (0.7-2 deg at 1.7-5.1 Hz) 5.3-27.
+(``T_base_cam``) as a rate; the base rocks when the median rate exceeds ``rocking_rate_deg_s``. Measured on the
+first frames: the level rendered runs 0.04-0.15 deg/s, KITTI 06 and 01 (a real car) 0.39 and 1.92, the rendered
+suspensions (0.7-2 deg at 1.7-5.1 Hz) 5.3-27.
 """
 
 from __future__ import annotations
