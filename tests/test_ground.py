@@ -10,6 +10,7 @@ from windowvo.backend.factors import L, X
 from windowvo.backend.ground import (
     FloorAttitude,
     attitude_jitter_deg,
+    beside_track,
     fit_floor_plane,
     floor_mask,
     level_up,
@@ -175,6 +176,28 @@ def test_floor_detection_switches_off_where_the_floor_assumption_breaks():
     assert fit is not None and not mask[: len(floor)][on_ramp].any()
     # a camera that sees no floor
     assert fit_floor_plane(np.zeros((0, 3)), np.zeros(3), 0.45, GroundConfig(), rng) is None
+
+
+def test_beside_track_judges_points_the_base_has_passed():
+    # the base drove along x from 0 to 4 m, then turned left onto y (a corner of a loop)
+    track = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [4.0, 0.0, 0.0], [4.0, 2.0, 0.0]])
+    pts = np.array([
+        [1.0, 0.3, 0.0],  # on the track's corridor
+        [1.0, -0.9, 0.02],  # a mat beside the first straight
+        [3.0, 1.2, 0.0],  # inside the corner: 1 m from the second straight, 1.2 m from the first
+        [3.5, 0.5, 0.0],  # near the corner, on the corridor
+        [4.0, 5.0, 0.0],  # ahead of the newest keyframe: not judged yet
+        [4.9, 2.8, 0.0],  # ahead and beside: not judged yet either
+        [-1.0, 3.0, 0.0],  # behind the oldest keyframe: no track beside it in the window
+    ])
+    beside = beside_track(pts, track, 0.6)
+    assert beside.tolist() == [False, True, True, False, False, False, False]
+    assert not beside_track(pts, track, 1.5).any()  # a wider corridor keeps them all
+    assert not beside_track(pts, track[:1], 0.6).any()  # one keyframe is no track
+    assert beside_track(np.zeros((0, 3)), track, 0.6).shape == (0,)
+    # a base that stopped: its standing keyframes add no segment, and a point ahead is still not judged
+    stopped = np.r_[track, np.repeat(track[-1:], 4, axis=0)]
+    assert beside_track(pts, stopped, 0.6).tolist() == beside.tolist()
 
 
 def test_off_floor_unties_a_raised_surface_and_little_else():

@@ -507,6 +507,12 @@ class GroundConfig(_Section):
         "more: a surface just above the floor, kerbs, pavements, mats, that the plane fit took for it), those beyond "
         "it on either side lose their ground factors and keep their projections. Level-frame ground factors (a "
         "rocking base) are not judged. null: never")
+    corridor_heights: float | None = Field(
+        None, gt=0, description="after every update, the window's tied floor landmarks that the base has driven past "
+        "farther than this many camera heights from its track (the window's keyframe base origins) lose their ground "
+        "factors and keep their projections: the ground the wheels roll on is the floor at the camera's height by "
+        "construction, the ground beside the track (kerbs, pavements, mats, platforms, a road's camber) only by "
+        "assumption. A landmark still ahead of the newest keyframe is not judged yet. null: never")
     reanchor_drifted_floor: bool = Field(
         True, description="without wheels (the floor the run's only scale source), a floor plane found at the same "
         "wrong height at two consecutive keyframes is the floor seen at a drifted scale (it was out of view while "

@@ -33,14 +33,13 @@ from .cue_check import CueAgreement, CueCheck
 from .factors import F, X
 from .floor_depth import FloorDepthStates
 from .ground import (
-    UNTIE_MIN_SIGMA_HEIGHTS,
     FloorAttitude,
     PlaneFit,
     attitude_jitter_deg,
     camera_height_up_to_scale,
+    floor_landmarks_to_untie,
     floor_mask,
     level_up,
-    off_floor,
     range_sigmas_m,
 )
 from .landmarks import LandmarkManager, triangulate_midpoint
@@ -136,6 +135,7 @@ class FloorModel:
         self.n_scale_reanchors = 0
         self.n_ground_factors = 0
         self.n_floor_untied = 0  # ground factors removed from floor landmarks found off the floor (``untie_off_floor``)
+        self.n_floor_beside_track = 0  # of them, beside the track the base drove (``ground.corridor_heights``)
         self.n_level_ground_factors = 0  # of them, measured along the floor's normal (the base rocks)
         self.base_rocking_deg = float("nan")  # attitude_jitter_deg over the window at the last floor fit
         self.level_frame = False  # the last update measured its floor points in the level frame
@@ -404,24 +404,21 @@ class FloorModel:
         """Remove (at the next update) the ground factors of the window's floor landmarks whose height above the
         floor of the keyframe that tied them, in the new estimate, strays from the others' (``ground.off_floor``).
 
+        With ``ground.corridor_heights``, also those the base has driven past beside its track (``beside_track``).
         Only native ground factors (``lm.ground_factor``); the level frame's, on a rocking base, are left alone.
         Measured (docs/performance.md): a loop lined with 3 cm kerbs, wheels +2%: ATE SE(3) 0.041 -> 0.017 m
         (without wheels 0.097 -> 0.023 m); 19 plain loops and figure eights 0.94x-1.31x, geometric mean 1.04."""
         self.floor_frames = {kk for kk in self.floor_frames if kk >= w0}
-        k_sigma = self.cfg.ground.untie_sigmas
-        if k_sigma is None:
-            return
-        n_base = self.floor_normal_base()
-        up = np.array([0.0, 0.0, 1.0]) if n_base is None else n_base
-        offset = self.floor_offset(n_base)
-        tied = self.lm.tied_to_floor(w0)
+        g = self.cfg.ground
+        tied = self.lm.tied_to_floor(w0) if g.untie_sigmas is not None or g.corridor_heights is not None else []
         if not tied:
             return
-        # Height along ``up`` in the tying keyframe's base frame: up . R^T (p - t), for all points at once.
-        T = np.stack([self.kf_pose[kk] for _, kk, _, _ in tied])
-        p = np.stack([p_world for *_, p_world in tied])
-        heights = np.einsum("nij,ni,j->n", T[:, :3, :3], p - T[:, :3, 3], up) - offset
-        off = off_floor(heights, k_sigma, UNTIE_MIN_SIGMA_HEIGHTS * self.camera_height_m)
+        n_base = self.floor_normal_base()
+        track = np.array([self.kf_pose[kk][:3, 3] for kk in sorted(self.kf_pose) if kk >= w0])
+        off, beside = floor_landmarks_to_untie(np.stack([self.kf_pose[kk] for _, kk, _, _ in tied]),
+                                               np.stack([p_world for *_, p_world in tied]), n_base,
+                                               self.floor_offset(n_base), track, g, self.camera_height_m)
+        self.n_floor_beside_track += int(np.count_nonzero(beside))
         for (tid, kk, fi, _), is_off in zip(tied, off):
             if is_off:
                 self.lm.drop_factor(tid, kk, fi)

@@ -198,6 +198,64 @@ def off_floor(heights_m: np.ndarray, k_sigma: float, min_sigma_m: float) -> np.n
     return above | below
 
 
+def _moved(track: np.ndarray, min_step_m: float) -> np.ndarray:
+    """The track's positions without those less than ``min_step_m`` from the last one kept (a base standing still
+    leaves no segment along which a point could have been passed)."""
+    keep = [0] if len(track) else []
+    for i in range(1, len(track)):
+        if np.linalg.norm(track[i] - track[keep[-1]]) >= min_step_m:
+            keep.append(i)
+    out = track[keep]
+    if len(keep) > 1 and keep[-1] != len(track) - 1:
+        out[-1] = track[-1]  # the newest position ends the track
+    return out
+
+
+def beside_track(p_world: np.ndarray, track_world: np.ndarray, max_offset_m: float) -> np.ndarray:
+    """Which points the base has driven past at more than ``max_offset_m`` from its track.
+
+    ``track_world`` (M, 3): the base origins of the window's keyframes in order (on the floor: the base origin lies
+    on it). A point's offset is its distance to the nearest segment of that polyline; it counts as passed only when
+    its nearest point on the track lies between the first and the last keyframe: a point still ahead of the newest
+    keyframe (or behind the oldest) has no track beside it to be judged against yet."""
+    p = np.asarray(p_world, float).reshape(-1, 3)
+    out = np.zeros(len(p), bool)
+    track = _moved(np.asarray(track_world, float).reshape(-1, 3), 1e-3 * max_offset_m)
+    if len(p) == 0 or len(track) < 2:
+        return out
+    a, b = track[:-1], track[1:]  # segments (S, 3)
+    ab = b - a
+    length2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-18)
+    u = np.einsum("nsj,sj->ns", p[:, None, :] - a[None], ab) / length2  # (N, S) position along each segment
+    uc = np.clip(u, 0.0, 1.0)
+    nearest = a[None] + uc[..., None] * ab[None]
+    dist = np.linalg.norm(p[:, None, :] - nearest, axis=2)
+    s = np.argmin(dist, axis=1)
+    rows = np.arange(len(p))
+    ahead = (s == len(ab) - 1) & (u[rows, s] >= 1.0)
+    behind = (s == 0) & (u[rows, s] <= 0.0)
+    return (dist[rows, s] > max_offset_m) & ~ahead & ~behind
+
+
+def floor_landmarks_to_untie(T_world_tying: np.ndarray, p_world: np.ndarray, n_base: np.ndarray | None, offset: float,
+                             track_world: np.ndarray, cfg: GroundConfig, camera_height_m: float
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """Which tied floor landmarks lose their ground factors after an update: those whose heights stray from the others'
+    (``off_floor``, ``ground.untie_sigmas``) or that the base drove past beside its track (``beside_track``,
+    ``ground.corridor_heights``), and of them, those untied for the track alone. ``T_world_tying`` (N, 4, 4): the base
+    pose of the keyframe that tied each; ``n_base``/``offset``: the floor in those base frames (None: the base's z)."""
+    off = np.zeros(len(p_world), bool)
+    if cfg.untie_sigmas is not None:
+        up = np.array([0.0, 0.0, 1.0]) if n_base is None else n_base
+        # Height along ``up`` in the tying keyframe's base frame: up . R^T (p - t), for all points at once.
+        heights = np.einsum("nij,ni,j->n", T_world_tying[:, :3, :3], p_world - T_world_tying[:, :3, 3], up) - offset
+        off = off_floor(heights, cfg.untie_sigmas, UNTIE_MIN_SIGMA_HEIGHTS * camera_height_m)
+    beside = np.zeros(len(p_world), bool)
+    if cfg.corridor_heights is not None:
+        beside = beside_track(p_world, track_world, cfg.corridor_heights * camera_height_m) & ~off
+    return off | beside, beside
+
+
 def attitude_jitter_deg(z_axes: np.ndarray) -> float:
     """Median angle (deg) between the z axes of consecutive keyframes' bases, (N, 3) in order.
 

@@ -54,6 +54,8 @@ class ScaleReport:
     floor_scale_reanchors: int = 0
     # Ground factors removed from floor landmarks that later turned out to lie off the floor (a kerb beside it).
     floor_untied: int = 0
+    # Of them, beside the track the base drove (ground.corridor_heights).
+    floor_beside_track: int = 0
     # ground.height_sigma_fraction: the floor's estimated depth below its configured height (m; None: not estimated)
     floor_depth_m: float | None = None
     n_resets: int = 0  # back-end window resets
@@ -87,6 +89,7 @@ def scale_report(be: SlidingWindowBackend) -> ScaleReport:
         metric_from_frame=None if be.metric_from_keyframe is None else be.kf_frame[be.metric_from_keyframe],
         floor_scale_reanchors=be.n_scale_reanchors,
         floor_untied=be.n_floor_untied,
+        floor_beside_track=be.floor.n_floor_beside_track,
         floor_depth_m=be.floor.depth.depth_m if be.floor.depth.estimated else None,
         n_resets=be.n_resets,
     )

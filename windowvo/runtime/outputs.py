@@ -222,6 +222,7 @@ def summary_dict(report: JobReport, cfg: Config) -> dict:
         "metric_from_frame": r.metric_from_frame,
         "floor_scale_reanchors": r.floor_scale_reanchors,
         "floor_untied": r.floor_untied,
+        "floor_beside_track": r.floor_beside_track,
         "floor_depth_m": None if r.floor_depth_m is None else round(r.floor_depth_m, 4),
         "wheel_calibration": None if cal is None else {
             "scale": round(cal.scale, 5), "scale_sigma": round(cal.scale_sigma, 5),
@@ -295,8 +296,10 @@ def _floor_line(r: RunResult, summary: dict) -> str | None:
         floor.append(f"estimated {r.floor_depth_m * 100:+.1f} cm below its configured height "
                      f"(backend.ground.height_sigma_fraction)")
     if r.floor_untied:
+        beside = (f", {r.floor_beside_track} of them beside the base's track (backend.ground.corridor_heights)"
+                  if r.floor_beside_track else "")
         floor.append(f"{r.floor_untied} floor landmarks found off it in later views and untied (a kerb or mat beside "
-                     f"it; backend.ground.untie_sigmas)")
+                     f"it; backend.ground.untie_sigmas){beside}")
     return "floor: " + "; ".join(floor) if floor else None
 
 

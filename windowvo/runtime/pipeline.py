@@ -97,6 +97,10 @@ class RunResult:
         return self.scale.floor_untied
 
     @property
+    def floor_beside_track(self) -> int:
+        return self.scale.floor_beside_track
+
+    @property
     def floor_depth_m(self) -> float | None:
         return self.scale.floor_depth_m
 
