@@ -1,7 +1,7 @@
 """Study (issue #26): two settings compared on rendered sequences the scale suite does not hold.
 
-    python scripts/road_region_seeds.py --work DIR [--cases region|slip|streets|kitti|rocking|raised] [--jobs 2] [--base K=V ...] [--set K=V ...]
-        [--seeds N] [--renders DIR]
+    python scripts/road_region_seeds.py --work DIR [--cases region|slip|streets|kitti|rocking|raised] [--jobs 2]
+        [--base K=V ...] [--set K=V ...] [--seeds N] [--renders DIR]
 
 ``--cases region`` (the default; item 2, ``backend.ground.road_region``): renders 13 sequences (rooms and
 warehouses 10 s, streets 8 s, wheels -2% to +2%, seeds 121-123, 221-226, 331-334) into DIR and runs each fused and

@@ -195,9 +195,16 @@ def test_beside_track_judges_points_the_base_has_passed():
     assert not beside_track(pts, track, 1.5).any()  # a wider corridor keeps them all
     assert not beside_track(pts, track[:1], 0.6).any()  # one keyframe is no track
     assert beside_track(np.zeros((0, 3)), track, 0.6).shape == (0,)
-    # a base that stopped: its standing keyframes add no segment, and a point ahead is still not judged
+    # a base that stopped: its standing keyframes add no segment, and a point ahead is still not judged, also
+    # when the estimate's positions jitter by millimetres while it stands
     stopped = np.r_[track, np.repeat(track[-1:], 4, axis=0)]
     assert beside_track(pts, stopped, 0.6).tolist() == beside.tolist()
+    rng = np.random.default_rng(5)
+    straight = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    ahead = np.array([[4.0, 0.0, 0.0], [3.0, 1.0, 0.0]])
+    for _ in range(200):
+        jittered = np.r_[straight, straight[-1] + rng.normal(0.0, 0.002, (4, 3))]
+        assert not beside_track(ahead, jittered, 0.6).any()
 
 
 def test_off_floor_unties_a_raised_surface_and_little_else():

@@ -49,9 +49,9 @@ def test_pipelined_equals_sequential(short_loop, seq_factory, tmp_path, case):
         assert a == b, name
     seq, pip = reps["sequential"].result, reps["pipelined"].result
     assert (seq.n_keyframes, seq.n_resets, seq.metric, seq.scale_sources, seq.metric_from_frame,
-            seq.floor_scale_reanchors, seq.floor_untied) == (
+            seq.floor_scale_reanchors, seq.floor_untied, seq.floor_beside_track) == (
         pip.n_keyframes, pip.n_resets, pip.metric, pip.scale_sources, pip.metric_from_frame,
-        pip.floor_scale_reanchors, pip.floor_untied)
+        pip.floor_scale_reanchors, pip.floor_untied, pip.floor_beside_track)
     if case == "monocular_floor_late":
         assert pip.metric and pip.metric_from_frame is not None and pip.metric_from_frame >= 40, pip
     else:

@@ -414,10 +414,10 @@ class FloorModel:
         if not tied:
             return
         n_base = self.floor_normal_base()
-        track = np.array([self.kf_pose[kk][:3, 3] for kk in sorted(self.kf_pose) if kk >= w0])
+        track_world = np.array([self.kf_pose[kk][:3, 3] for kk in sorted(self.kf_pose) if kk >= w0])
         off, beside = floor_landmarks_to_untie(np.stack([self.kf_pose[kk] for _, kk, _, _ in tied]),
                                                np.stack([p_world for *_, p_world in tied]), n_base,
-                                               self.floor_offset(n_base), track, g, self.camera_height_m)
+                                               self.floor_offset(n_base), track_world, g, self.camera_height_m)
         self.n_floor_beside_track += int(np.count_nonzero(beside))
         for (tid, kk, fi, _), is_off in zip(tied, off):
             if is_off:

@@ -198,6 +198,10 @@ def off_floor(heights_m: np.ndarray, k_sigma: float, min_sigma_m: float) -> np.n
     return above | below
 
 
+# ``beside_track``: the track's positions are kept this share of the corridor's half width apart at least.
+TRACK_MIN_STEP = 0.25
+
+
 def _moved(track: np.ndarray, min_step_m: float) -> np.ndarray:
     """The track's positions without those less than ``min_step_m`` from the last one kept (a base standing still
     leaves no segment along which a point could have been passed)."""
@@ -215,12 +219,14 @@ def beside_track(p_world: np.ndarray, track_world: np.ndarray, max_offset_m: flo
     """Which points the base has driven past at more than ``max_offset_m`` from its track.
 
     ``track_world`` (M, 3): the base origins of the window's keyframes in order (on the floor: the base origin lies
-    on it). A point's offset is its distance to the nearest segment of that polyline; it counts as passed only when
-    its nearest point on the track lies between the first and the last keyframe: a point still ahead of the newest
-    keyframe (or behind the oldest) has no track beside it to be judged against yet."""
+    on it), thinned to steps of at least a quarter of ``max_offset_m``: a base standing still or turning in place,
+    whose estimated position jitters by millimetres, adds no segment that could point anywhere. A point's offset is its
+    distance to the nearest segment of that polyline; it counts as passed only when its nearest point on the track
+    lies between the first and the last keyframe: a point still ahead of the newest keyframe (or behind the oldest)
+    has no track beside it to be judged against yet."""
     p = np.asarray(p_world, float).reshape(-1, 3)
     out = np.zeros(len(p), bool)
-    track = _moved(np.asarray(track_world, float).reshape(-1, 3), 1e-3 * max_offset_m)
+    track = _moved(np.asarray(track_world, float).reshape(-1, 3), TRACK_MIN_STEP * max_offset_m)
     if len(p) == 0 or len(track) < 2:
         return out
     a, b = track[:-1], track[1:]  # segments (S, 3)

@@ -296,10 +296,13 @@ def _floor_line(r: RunResult, summary: dict) -> str | None:
         floor.append(f"estimated {r.floor_depth_m * 100:+.1f} cm below its configured height "
                      f"(backend.ground.height_sigma_fraction)")
     if r.floor_untied:
-        beside = (f", {r.floor_beside_track} of them beside the base's track (backend.ground.corridor_heights)"
-                  if r.floor_beside_track else "")
-        floor.append(f"{r.floor_untied} floor landmarks found off it in later views and untied (a kerb or mat beside "
-                     f"it; backend.ground.untie_sigmas){beside}")
+        if r.floor_beside_track:
+            floor.append(f"{r.floor_untied} floor landmarks untied in later views: {r.floor_beside_track} beside the "
+                         f"base's track (backend.ground.corridor_heights), {r.floor_untied - r.floor_beside_track} off "
+                         f"the floor's heights (backend.ground.untie_sigmas)")
+        else:
+            floor.append(f"{r.floor_untied} floor landmarks found off it in later views and untied (a kerb or mat "
+                         f"beside it; backend.ground.untie_sigmas)")
     return "floor: " + "; ".join(floor) if floor else None
 
 
