@@ -512,7 +512,9 @@ class GroundConfig(_Section):
         "farther than this many camera heights from its track (the window's keyframe base origins) lose their ground "
         "factors and keep their projections: the ground the wheels roll on is the floor at the camera's height by "
         "construction, the ground beside the track (kerbs, pavements, mats, platforms, a road's camber) only by "
-        "assumption. A landmark still ahead of the newest keyframe is not judged yet. null: never")
+        "assumption. A landmark still ahead of the newest keyframe or behind the oldest is not judged. 1.0 was "
+        "measured: rooms and warehouses with platforms or mats beside the path fused 0.56-0.67x, but rooms without "
+        "them 1.5x (docs/scale_suite.md, 'The ground beside the track'). null: never")
     reanchor_drifted_floor: bool = Field(
         True, description="without wheels (the floor the run's only scale source), a floor plane found at the same "
         "wrong height at two consecutive keyframes is the floor seen at a drifted scale (it was out of view while "
