@@ -20,7 +20,9 @@ the base frame from the planes fitted so far, so that a mount's pitch or roll er
 into a scale error (1 deg of pitch made 5.5% of scale error on the rendered loop);
 ``tilt_significant`` says when that tilt is the mount's, and ``levelled_mount`` corrects
 ``T_base_cam`` by it. ``off_floor`` tells which tied floor landmarks, seen again from later
-keyframes, turn out to lie off the floor (a kerb beside it), so that they lose their ground factor.
+keyframes, turn out to lie off the floor (a kerb beside it), so that they lose their ground factor;
+``beside_track`` tells which the base has driven past beside its track (``ground.corridor_heights``: the ground the
+wheels roll on is the floor at the camera's height, the ground beside it only by assumption).
 
 Pure numpy: no GTSAM here, so the detector is tested on its own.
 """
