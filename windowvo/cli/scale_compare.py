@@ -35,7 +35,8 @@ def main(argv: list[str] | None = None) -> int:
                                 "--suite scale): per way (fused, floor only) the geometric mean and the worst of the "
                                 "ATE ratios after / before, per scene, against the old seeds' spread, and the suite's "
                                 "summary side by side.")
-    p.add_argument("before", help="the results before the change: a --out folder of the benchmark or its scale_suite.json")
+    p.add_argument("before", help="the results before the change: a --out folder of the benchmark or its "
+                   "scale_suite.json")
     p.add_argument("after", help="the results after it")
     a = p.parse_args(argv)
     try:
