@@ -394,7 +394,7 @@ class RoadRegionConfig(_Section):
         "known to about this many pixels whatever the step (the alignment's peak, the estimate's rotation between the "
         "two keyframes: 0.05 deg is 0.3 px at 350 px of focal length): the step's sigma is sigma_fraction and this over "
         "its median flow in pixels, added in quadrature, so that a short step (a restart after a standstill, a slow "
-        "base) is not weighed as if its length were known to 3% of itself. 0: sigma_fraction alone")
+        "base) is not weighed as if its length were known to 3%% of itself. 0: sigma_fraction alone")
     max_floor_landmarks: int | None = Field(
         50, ge=1, description="measure a step only while the window holds fewer than this many floor landmarks "
         "tied to the floor (the corners then tell the floor's scale already, and the region's pixels are the same "
