@@ -793,27 +793,3 @@ def test_the_ridge_factors_jacobians_are_its_errors_derivatives():
                 out.append(float(np.asarray(f.unwhitenedError(v)).ravel()[0]))
             numeric = (out[0] - out[1]) / (2 * eps) / 0.03
             assert jac[0, 6 * j + i] == pytest.approx(numeric, abs=1e-4), (key, i)
-
-
-def test_a_short_steps_sigma_grows_by_its_flows_precision():
-    """``flow_sigma_px``: a step's length is measured from the floor's pixel motion, known to a fraction of a pixel
-    whatever the step, so the sigma of a short step (a restart after a standstill) is wider than ``sigma_fraction``
-    of its length, and a long one's nearly is it; 0 leaves sigma_fraction alone."""
-    cam, tex = _camera(), _texture(4, lane_lines=False)
-    sigmas = {}
-    for flow_sigma_px in (0.0, 0.5):
-        cfg = RoadRegionConfig(enabled=True, pitch_search_deg=0.0, flow_sigma_px=flow_sigma_px)
-        for forward in (0.06, 0.3):
-            T0, T1 = _step(yaw=0.0, forward=forward, sideways=0.0)
-            cue = RoadRegionCue(cam, cfg, cam.T_base_cam)
-            cue.keep_image(1, _render(cam, T0, tex))
-            cue.keep_image(2, _render(cam, T1, tex))
-            step = cue.measure(2, T0, T1, np.array([0.0, 0.0, 1.0]), 0.0)
-            assert step is not None
-            assert step.camera_m == pytest.approx(_camera_distance(cam, T0, T1), rel=0.02)
-            sigmas[flow_sigma_px, forward] = step.sigma_fraction
-    assert sigmas[0.0, 0.06] == sigmas[0.0, 0.3] == 0.03
-    # the flow grows with the step: five times the step, about a fifth of the flow's share
-    short_extra = np.sqrt(sigmas[0.5, 0.06] ** 2 - 0.03**2)
-    long_extra = np.sqrt(sigmas[0.5, 0.3] ** 2 - 0.03**2)
-    assert sigmas[0.5, 0.06] > 0.045 and long_extra == pytest.approx(short_extra / 5.0, rel=0.25)

@@ -389,12 +389,6 @@ class RoadRegionConfig(_Section):
                              "on the pooled pitch. 3 was measured: 2.3x less cost, but the KITTI excerpts' fused runs "
                              "1.54x worse (docs/scale_suite.md)")
     sigma_fraction: float = Field(0.03, gt=0, description="sigma of a measured step's length, as a share of it")
-    flow_sigma_px: float = Field(
-        0.0, ge=0, description="a step's length is measured from how far the floor's pixels move, and that motion is "
-        "known to about this many pixels whatever the step (the alignment's peak, the estimate's rotation between the "
-        "two keyframes: 0.05 deg is 0.3 px at 350 px of focal length): the step's sigma is sigma_fraction and this over "
-        "its median flow in pixels, added in quadrature, so that a short step (a restart after a standstill, a slow "
-        "base) is not weighed as if its length were known to 3%% of itself. 0: sigma_fraction alone")
     max_floor_landmarks: int | None = Field(
         50, ge=1, description="measure a step only while the window holds fewer than this many floor landmarks "
         "tied to the floor (the corners then tell the floor's scale already, and the region's pixels are the same "

@@ -118,7 +118,6 @@ class StepFit:
     n_pixels: int
     pitch_deg: float = 0.0
     tilt_slope: float = 0.0  # d log(length) / d(camera k's tilt, rad) along the ridge (``tilt_ridge_deg``; 0: none)
-    flow_px: float = float("inf")  # the region's median flow at the estimate's length (``flow_sigma_px``)
 
 
 def floor_in_camera(T_base_cam: np.ndarray, n_base: np.ndarray, floor_offset: float) -> tuple[np.ndarray, float]:
@@ -417,11 +416,11 @@ def measure_step(camera: CameraModel, img0: np.ndarray, img1: np.ndarray, T_worl
             return None
         uv0, X0 = uv0[keep], X0[keep]
         warp = _Warp(camera, img0, img1, uv0, X0, R, t_dir, n_cam, h, cfg.min_pixels, masks[1], cfg.interpolation)
-    flow = warp.flow_px(s_est)
-    if flow < cfg.min_flow_px:
+    if warp.flow_px(s_est) < cfg.min_flow_px:
         return None
-    fit = (_search_with_pitch if cfg.pitch_search_deg > 0 else _search)(warp, t_dir, s_est, h, cfg, coarse_span)
-    return None if fit is None else replace(fit, flow_px=flow)
+    if cfg.pitch_search_deg > 0:
+        return _search_with_pitch(warp, t_dir, s_est, h, cfg, coarse_span)
+    return _search(warp, t_dir, s_est, h, cfg, coarse_span)
 
 
 def _coarse_lengths(correlations: Callable[[np.ndarray], np.ndarray], log_s: float, shifts: int,
@@ -757,8 +756,7 @@ class RoadRegionCue:
             return None
         return RoadStep(k, fit.camera_m, base_distance(self.T_base_cam, T_wc0, T_wc1, fit.camera_m),
                         float(np.linalg.norm(T_wc1[:3, 3] - T_wc0[:3, 3])), fit.correlation, fit.n_pixels, fit.pitch_deg,
-                        math.hypot(self.step_sigma_fraction(n_cam, h), self.cfg.flow_sigma_px / fit.flow_px),
-                        fit.tilt_slope,
+                        self.step_sigma_fraction(n_cam, h), fit.tilt_slope,
                         (np.linalg.inv(T_wc0) @ T_wc1)[:3, :3] if fit.tilt_slope != 0.0 else None)
 
     def _fit(self, img0: np.ndarray, img1: np.ndarray, T_wc0: np.ndarray, T_wc1: np.ndarray, n_cam: np.ndarray,
