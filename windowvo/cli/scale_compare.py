@@ -42,13 +42,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         before, after = load_results(a.before), load_results(a.after)
         result = compare(before, after)
+        if not result.sequences:
+            raise WindowVOError(f"{a.before} and {a.after} hold no sequence in common")
+        text = comparison_text(result)
     except WindowVOError as err:
         return cli_error(err, PROG)
-    except (KeyError, TypeError, ValueError) as err:
+    except OSError as err:
+        return cli_error(f"cannot read the results: {err}", PROG)
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError, RecursionError) as err:
         return cli_error(f"malformed scale suite results: {type(err).__name__} {err}", PROG)
-    if not result.sequences:
-        return cli_error(f"{a.before} and {a.after} hold no sequence in common", PROG)
-    print(comparison_text(result))
+    print(text)
     return 0
 
 

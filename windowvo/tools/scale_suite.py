@@ -246,7 +246,8 @@ def run_suite(cases: list[ScaleCase], cache: Path, out: Path, jobs: int, overrid
                                jobs, "scale suite")
 
 
-def _gmean(values: list[float]) -> float:
+def gmean(values: list[float]) -> float:
+    """Geometric mean of the positive, finite values (nan for none)."""
     v = [x for x in values if x > 0 and math.isfinite(x)]
     return float(np.exp(np.mean(np.log(v)))) if v else float("nan")
 
@@ -259,12 +260,12 @@ def summary(rows: list[dict]) -> dict:
     kitti = [r["fused_se3_over_sim3"] for r in rows if r["scene"] == "kitti"]
     return {
         "sequences": len(rows),
-        "fused_over_best_gmean": _gmean(ratios),
+        "fused_over_best_gmean": gmean(ratios),
         "fused_over_best_worst": max(finite) if finite else float("nan"),
         "share_within_1.1x": sum(x <= 1.1 for x in finite) / len(finite) if finite else float("nan"),
         "share_within_1.5x": sum(x <= 1.5 for x in finite) / len(finite) if finite else float("nan"),
         "fused_worse_than_wheels_alone": sum(x > 1.0 for x in vs_wheels),
-        "fused_se3_over_sim3_gmean": _gmean([r["fused_se3_over_sim3"] for r in rows]),
+        "fused_se3_over_sim3_gmean": gmean([r["fused_se3_over_sim3"] for r in rows]),
         "kitti_fused_se3_over_sim3_worst": max(kitti) if kitti else float("nan"),
         "seeds": max((len(r[w].get("se3_runs", [0])) for r in rows for w in SEEDED_WAYS), default=1),
         # each seeded way: the share of sequences whose runs over the seeds lie within 1.1x of each other
