@@ -94,22 +94,23 @@ def _beyond_seeds(before: dict, after: dict) -> int:
     return -1 if new < min(runs) else (1 if new > max(runs) else 0)
 
 
-def _way_change(way: str, rows_before: dict[str, dict], rows_after: dict[str, dict], names: list[str]) -> WayChange:
-    ratios = {n: _ratio(float(rows_after[n][way]["se3"]), float(rows_before[n][way]["se3"])) for n in names}
+def _way_change(way: str, sequences: list[SequenceChange], rows_before: dict[str, dict],
+                rows_after: dict[str, dict]) -> WayChange:
+    ratios = {s.sequence: s.ratio(way) for s in sequences}
     usable = {n: r for n, r in ratios.items() if r > 0 and math.isfinite(r)}
     worst = max(usable, key=lambda n: usable[n]) if usable else ""
     best = min(usable, key=lambda n: usable[n]) if usable else ""
     scenes: dict[str, list[float]] = {}
-    for n in names:
-        scenes.setdefault(str(rows_before[n]["scene"]), []).append(ratios[n])
+    for s in sequences:
+        scenes.setdefault(s.scene, []).append(ratios[s.sequence])
     beyond, chance = None, float("nan")
-    if names and all(_seeded(rows_before[n][way]) and _seeded(rows_after[n][way]) for n in names):
-        signs = [_beyond_seeds(rows_before[n][way], rows_after[n][way]) for n in names]
+    olds, news = [rows_before[n][way] for n in ratios], [rows_after[n][way] for n in ratios]
+    if ratios and all(_seeded(o) and _seeded(w) for o, w in zip(olds, news)):
+        signs = [_beyond_seeds(o, w) for o, w in zip(olds, news)]
         beyond = (signs.count(-1), signs.count(1))
-        chance = chance_beyond_each_side(min(len(rows_after[n][way]["se3_runs"]) for n in names),
-                                         min(len(rows_before[n][way]["se3_runs"]) for n in names))
+        chance = chance_beyond_each_side(min(len(w["se3_runs"]) for w in news), min(len(o["se3_runs"]) for o in olds))
     return WayChange(way, gmean(list(ratios.values())), usable.get(worst, float("nan")), worst,
-                     usable.get(best, float("nan")), best, {s: gmean(v) for s, v in scenes.items()}, beyond, chance)
+                     usable.get(best, float("nan")), best, {sc: gmean(v) for sc, v in scenes.items()}, beyond, chance)
 
 
 def compare(before: dict, after: dict) -> ScaleComparison:
@@ -126,7 +127,7 @@ def compare(before: dict, after: dict) -> ScaleComparison:
     sb, sa = before.get("summary", {}), after.get("summary", {})
     numeric = (int, float)
     return ScaleComparison(
-        ways=[_way_change(w, rows_before, rows_after, names) for w in SEEDED_WAYS],
+        ways=[_way_change(w, sequences, rows_before, rows_after) for w in SEEDED_WAYS],
         sequences=sequences,
         summary={k: (sb[k], sa[k]) for k in sb
                  if k in sa and isinstance(sb[k], numeric) and isinstance(sa[k], numeric)},
