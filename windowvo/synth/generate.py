@@ -22,6 +22,7 @@ from ..io.odometry import WheelOdometry, write_odometry_csv
 from ..io.odometry_synthesis import integrate_wheel_odometry
 from ..io.sequence import write_camera_yaml
 from ..io.trajectory import write_tum
+from . import exact
 from .paths import PathKind, PlanarPath, make_path
 from .scene import MovingBox, Ramp, Renderer, Scene, make_room_scene
 from .scenes import SceneKind, make_street_scene, make_warehouse_scene
@@ -178,7 +179,7 @@ class SyntheticWorld:
 
 
 def camera_for(spec: SynthSpec) -> CameraModel:
-    R_bc = R_BASE_CAM_FORWARD @ rot_x(-np.deg2rad(spec.camera_pitch_deg))
+    R_bc = exact.matmul(R_BASE_CAM_FORWARD, rot_x(-np.deg2rad(spec.camera_pitch_deg)))
     T_base_cam = make_T(R_bc, np.array([0.25, 0.0, spec.camera_height_m]))
     return CameraModel(
         spec.width,
@@ -203,10 +204,10 @@ def base_pose(planar: PlanarPath, scene: Scene, t: float, vib_deg: float, seed: 
     zr = scene.ground_height(x - half_base * h[0], y - half_base * h[1])
     z = 0.5 * (zf + zr)
     xa = np.array([2 * half_base * h[0], 2 * half_base * h[1], zf - zr])
-    xa /= np.linalg.norm(xa)
+    xa /= exact.norm(xa)
     n_side = scene.ground_normal(x, y)
     ya = np.cross(n_side, xa)
-    ya /= np.linalg.norm(ya)
+    ya /= exact.norm(ya)
     n = np.cross(xa, ya)
     R = np.stack([xa, ya, n], axis=1)
     if vib_deg > 0:
@@ -214,7 +215,7 @@ def base_pose(planar: PlanarPath, scene: Scene, t: float, vib_deg: float, seed: 
         ph = (seed % 7) * 0.37
         roll = a * (0.7 * np.sin(2 * np.pi * 1.7 * t + ph) + 0.3 * np.sin(2 * np.pi * 4.3 * t))
         pitch = a * (0.6 * np.sin(2 * np.pi * 2.3 * t + 1.1 + ph) + 0.4 * np.sin(2 * np.pi * 5.1 * t))
-        R = R @ rot_y(pitch) @ rot_x(roll)
+        R = exact.matmul(exact.matmul(R, rot_y(pitch)), rot_x(roll))
         z += 0.004 * np.sin(2 * np.pi * 3.1 * t)
     return make_T(R, np.array([x, y, z]))
 
@@ -248,9 +249,9 @@ def place_kerbs(planar: PlanarPath, height: float) -> list[tuple[float, float, f
     for s in np.arange(0.5 * KERB_STEP_M, along[-1], KERB_STEP_M):
         i = min(int(np.searchsorted(along, s)), len(pts) - 2)
         tangent = pts[i + 1] - pts[i]
-        if np.linalg.norm(tangent) < 1e-9:
+        if exact.norm(tangent) < 1e-9:
             continue
-        side = np.array([-tangent[1], tangent[0]]) / np.linalg.norm(tangent)
+        side = np.array([-tangent[1], tangent[0]]) / exact.norm(tangent)
         for c in (pts[i] - KERB_SIDE_M * side, pts[i] + KERB_SIDE_M * side):
             if np.min(np.hypot(*(pts - c).T)) < KERB_CLEARANCE_M:
                 continue  # where the path turns or crosses itself
@@ -311,7 +312,8 @@ def simulate_wheel_odometry(world: SyntheticWorld, err: WheelErrorModel, seed: i
     """Integrate noisy planar increments of the true base motion (what wheel encoders see)."""
     ts = np.arange(0.0, world.planar.duration + 1e-9, 1.0 / err.rate_hz)
     T = np.stack([world.T_world_base(t) for t in ts])
-    d = np.einsum("nji,nj->ni", T[:-1, :3, :3], T[1:, :3, 3] - T[:-1, :3, 3])  # step in the previous base frame
+    step = T[1:, :3, 3] - T[:-1, :3, 3]
+    d = sum(T[:-1, j, :3] * step[:, j:j + 1] for j in range(3))  # the step in the previous base frame: R^T step
     ds = np.concatenate([[0.0], np.hypot(d[:, 0], d[:, 1]) * np.where(np.abs(d[:, 0]) > 1e-12, np.sign(d[:, 0]), 1.0)])
     # Heading change of the planar path only: roll/pitch vibration does not turn the wheels.
     dyaw = np.concatenate([[0.0], np.diff(world.planar.at(ts)[2])])
@@ -344,7 +346,7 @@ def frame_gain(spec: SynthSpec, i: int, rng: np.random.Generator) -> float:
 
 def below_horizon(cam: CameraModel) -> np.ndarray:
     """Pixels whose ray points below the horizon of the base frame, (h, w) bool."""
-    rays = cam.pixel_bearings() @ cam.T_base_cam[:3, :3].T
+    rays = exact.matmul(cam.pixel_bearings(), cam.T_base_cam[:3, :3].T)
     with np.errstate(invalid="ignore"):
         return (rays[:, 2] < 0.0).reshape(cam.height, cam.width)
 
@@ -353,7 +355,7 @@ def _frame_image(renderer: Renderer, spec: SynthSpec, i: int, t: float, T_wb: np
                  hidden: np.ndarray | None) -> np.ndarray:
     """Frame ``i`` as written: rendered, then blurred, washed out, noisy, hidden or black as the spec says."""
     cam = renderer.camera
-    img, _ = renderer.render(T_wb @ cam.T_base_cam, t, gain=frame_gain(spec, i, rng))
+    img, _ = renderer.render(exact.matmul(T_wb, cam.T_base_cam), t, gain=frame_gain(spec, i, rng))
     img = img * 255.0
     if any(a <= i <= b for a, b in spec.blur_frames):
         ksize = 15

@@ -15,7 +15,8 @@ import cv2
 import numpy as np
 
 from ..camera import CameraModel, DistortionModel
-from ..geometry import inv_T
+from . import exact
+from .exact import inv_T
 
 TEXEL_M = 0.005  # texture resolution: one texel is 5 mm
 TEX_SIZE = 1024  # texels per tile side (a tile is 5.12 m)
@@ -39,7 +40,7 @@ class Plane:
     @cached_property
     def normal(self) -> np.ndarray:  # (the axes are fixed once a plane is made)
         n = np.cross(self.axis_u, self.axis_v)
-        return n / np.linalg.norm(n)
+        return n / exact.norm(n)
 
     def corners(self) -> np.ndarray:
         o, a, b = self.origin, self.axis_u * self.length_u, self.axis_v * self.length_v
@@ -53,13 +54,13 @@ def textured_rect(origin, axis_u, axis_v, lu, lv, rng: np.random.Generator, brig
     av = np.asarray(axis_v, float)
     if facing is not None:
         n = np.cross(au, av)
-        if np.dot(np.asarray(facing, float) - origin, n) < 0:
-            origin = origin + au / np.linalg.norm(au) * lu
+        if exact.dot(np.asarray(facing, float) - origin, n) < 0:
+            origin = origin + au / exact.norm(au) * lu
             au = -au
     return Plane(
         np.asarray(origin, float),
-        au / np.linalg.norm(au),
-        av / np.linalg.norm(av),
+        au / exact.norm(au),
+        av / exact.norm(av),
         float(lu),
         float(lv),
         (float(rng.uniform(0, 10)), float(rng.uniform(0, 10))),
@@ -147,7 +148,7 @@ class Scene:
             return np.array([0.0, 0.0, 1.0])
         s = self.ramp.slope_at(x)
         n = np.array([-s, 0.0, 1.0])
-        return n / np.linalg.norm(n)
+        return n / exact.norm(n)
 
     def planes_at(self, t: float) -> list[Plane]:
         out = list(self.planes)
@@ -308,20 +309,20 @@ def raycast(planes: list[Plane], origin: np.ndarray, dirs: np.ndarray, near: flo
     lu = np.array([p.length_u for p in planes], np.float32)
     lv = np.array([p.length_v for p in planes], np.float32)
     o = origin.astype(np.float32)
-    num = np.einsum("pk,pk->p", origins - o, normals)  # (P,)
+    num = exact.rowwise_dot(origins - o, normals)  # (P,)
     # Cull planes that face away from the camera (the camera sits on their back side).
     front = num < 0
     idx_keep = np.nonzero(front)[0]
     if idx_keep.size == 0:
         return (np.full(N, np.inf, np.float32), np.zeros(N, np.int32), np.zeros(N, np.float32), np.zeros(N, np.float32))
     M = np.concatenate([normals[idx_keep], au[idx_keep], av[idx_keep]], axis=0).T  # (3, 3K)
-    prod = dirs32 @ M  # (N, 3K)
+    prod = exact.matmul(dirs32, M)  # (N, 3K)
     K = idx_keep.size
     dn, da, db = prod[:, :K], prod[:, K : 2 * K], prod[:, 2 * K :]
     with np.errstate(divide="ignore", invalid="ignore"):
         t = num[idx_keep][None, :] / dn
-    rel_u = np.einsum("pk,pk->p", o - origins[idx_keep], au[idx_keep])
-    rel_v = np.einsum("pk,pk->p", o - origins[idx_keep], av[idx_keep])
+    rel_u = exact.rowwise_dot(o - origins[idx_keep], au[idx_keep])
+    rel_v = exact.rowwise_dot(o - origins[idx_keep], av[idx_keep])
     u = rel_u[None, :] + t * da
     v = rel_v[None, :] + t * db
     ok = (t > near) & (u >= 0) & (u <= lu[idx_keep][None, :]) & (v >= 0) & (v <= lv[idx_keep][None, :])
@@ -395,7 +396,7 @@ class Renderer:
         c = plane.corners()
         edge = np.linspace(0.0, 1.0, per_edge + 1)[:-1, None]
         outline = np.concatenate([c[i] + edge * (c[(i + 1) % 4] - c[i]) for i in range(4)])
-        return outline @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        return exact.matmul(outline, T_cam_world[:3, :3].T) + T_cam_world[:3, 3]
 
     def _block(self, plane: Plane, T_cam_world: np.ndarray, near: float):
         """Row and column slices of the image the plane can cover, or None."""
@@ -474,7 +475,7 @@ class Renderer:
         corners = self._static_corners()
         if len(planes) > n_static:
             corners = np.concatenate([corners, np.stack([p.corners() for p in planes[n_static:]])])
-        pc = corners @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]  # (P, 4, 3) corners in the camera frame
+        pc = exact.matmul(corners, T_cam_world[:3, :3].T) + T_cam_world[:3, 3]  # (P, 4, 3) corners in the camera frame
         x, y, z = pc[..., 0], pc[..., 1], pc[..., 2]
         keep = (z >= near).any(axis=1)
         # ... nor wholly beyond one side of the view frustum (a convex set: then no pixel ray meets them)
@@ -483,7 +484,7 @@ class Renderer:
         # ... nor clearly seen from their back (the exact test stays in _raster)
         normals = np.stack([p.normal for p in planes])
         origins = corners[:, 0]
-        keep &= np.einsum("pk,pk->p", origins - inv_T(T_cam_world)[:3, 3], normals) < 1e-6
+        keep &= exact.rowwise_dot(origins - inv_T(T_cam_world)[:3, 3], normals) < 1e-6
         return [p for p, k in zip(planes, keep) if k]
 
     def _raster(self, p: Plane, T_world_cam: np.ndarray, T_cam_world: np.ndarray, near: float, buf: _Buffers) -> None:
@@ -491,7 +492,7 @@ class Renderer:
         R = T_world_cam[:3, :3].astype(np.float32)
         cam_o = T_world_cam[:3, 3]
         n = p.normal
-        num = float(np.dot(p.origin - cam_o, n))
+        num = exact.dot(p.origin - cam_o, n)
         if num >= 0:  # camera behind the plane's visible side
             return
         blk = self._block(p, T_cam_world, near)
@@ -500,15 +501,15 @@ class Renderer:
         rs, cs = blk
         rays = self.rays_cam[rs, cs]  # (h, w, 3) camera frame
         # Plane quantities expressed in the camera frame: one dot product per pixel each.
-        n_c = (R.T @ n.astype(np.float32))
-        a_c = (R.T @ p.axis_u.astype(np.float32))
-        b_c = (R.T @ p.axis_v.astype(np.float32))
-        dn = rays @ n_c
+        n_c = exact.matmul(R.T, n.astype(np.float32))
+        a_c = exact.matmul(R.T, p.axis_u.astype(np.float32))
+        b_c = exact.matmul(R.T, p.axis_v.astype(np.float32))
+        dn = exact.matmul(rays, n_c)
         with np.errstate(divide="ignore", invalid="ignore"):
             t_ray = np.float32(num) / dn
         rel = (cam_o - p.origin)
-        u = np.float32(rel @ p.axis_u) + t_ray * (rays @ a_c)
-        v = np.float32(rel @ p.axis_v) + t_ray * (rays @ b_c)
+        u = np.float32(exact.dot(rel, p.axis_u)) + t_ray * exact.matmul(rays, a_c)
+        v = np.float32(exact.dot(rel, p.axis_v)) + t_ray * exact.matmul(rays, b_c)
         tb = buf.tbuf[rs, cs]
         ok = (t_ray > near) & (t_ray < tb) & (u >= 0) & (u <= p.length_u) & (v >= 0) & (v <= p.length_v)
         if not ok.any():
@@ -550,7 +551,7 @@ class Renderer:
 
     def surface_points(self, T_world_cam: np.ndarray, uv: np.ndarray, t: float) -> np.ndarray:
         """World points (N,3) seen at pixels ``uv`` (nan where no surface)."""
-        dirs = self.camera.unproject(uv) @ T_world_cam[:3, :3].T  # unit bearings: any lens
+        dirs = exact.matmul(self.camera.unproject(uv), T_world_cam[:3, :3].T)  # unit bearings: any lens
         depth, _, _, _ = raycast(self.scene.planes_at(t), T_world_cam[:3, 3], dirs)
         p = T_world_cam[:3, 3][None, :] + depth[:, None] * dirs
         p[~np.isfinite(depth)] = np.nan

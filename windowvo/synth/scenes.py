@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import exact
 from .paths import PlanarPath
 from .scene import MovingBox, Plane, Scene, make_room_scene, oriented_box_planes, textured_rect
 
@@ -96,7 +97,7 @@ class Centreline:
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
-    return v / max(float(np.linalg.norm(v)), 1e-12)
+    return v / max(exact.norm(v), 1e-12)
 
 
 def _strip(line: Centreline, s0: float, s1: float, d0: float, d1: float, z: float, rng: np.random.Generator,
@@ -108,7 +109,7 @@ def _strip(line: Centreline, s0: float, s1: float, d0: float, d1: float, z: floa
     n = np.array([-u[1], u[0]])
     ext = 0.05 + 0.02 * max(abs(d0), abs(d1))
     origin = np.append(a - ext * u + (d0 - 0.5 * (d0 + d1)) * n, z)
-    p = textured_rect(origin, np.append(u, 0.0), np.append(n, 0.0), float(np.linalg.norm(b - a)) + 2 * ext,
+    p = textured_rect(origin, np.append(u, 0.0), np.append(n, 0.0), exact.norm(b - a) + 2 * ext,
                       d1 - d0, rng, brightness, facing=origin + [0.0, 0.0, 100.0])
     p.contrast = contrast
     return p
@@ -121,7 +122,7 @@ def _wall(line: Centreline, s0: float, s1: float, d: float, z0: float, height: f
     u = _unit(b - a)
     a = a - ext * u
     mid = line.at(0.5 * (s0 + s1), 0.0)
-    return textured_rect(np.append(a, z0), np.append(u, 0.0), [0.0, 0.0, 1.0], float(np.linalg.norm(b - a)) + 2 * ext,
+    return textured_rect(np.append(a, z0), np.append(u, 0.0), [0.0, 0.0, 1.0], exact.norm(b - a) + 2 * ext,
                          height, rng, brightness, facing=np.append(mid, z0 + 0.5 * height))
 
 
