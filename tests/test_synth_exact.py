@@ -1,5 +1,5 @@
-"""The renderer's products summed in a fixed order (``windowvo/synth/exact.py``): right, and the same bits on every
-CPU (two BLAS kernels render the same files)."""
+"""The renderer's arithmetic in a fixed order (``windowvo/synth/exact.py``): right, and the same bits on every CPU
+(other BLAS kernels and numpy SIMD levels render the same files)."""
 
 from __future__ import annotations
 
@@ -23,17 +23,25 @@ from windowvo.synth.generate import SynthSpec, generate_sequence
 from windowvo.synth.paths import PathKind
 from windowvo.synth.scenes import SceneKind
 out = Path(sys.argv[1])
-# a BLAS probe: float32 products of the renderer's shapes, whose last bits show which kernel ran
+# probes: the library code the renderer used to call, whose last bits show which kernels ran
 rng = np.random.default_rng(0)
-probe = rng.normal(size=(4096, 3)).astype(np.float32) @ rng.normal(size=3).astype(np.float32)
-generate_sequence(out / "rocking", SynthSpec(path=PathKind.FIGURE_EIGHT, duration_s=1.0, seed=33, vibration_deg=1.0,
-                                             width=240, height=180, fx=130.0))
+a32, v32 = rng.normal(size=(4096, 3)).astype(np.float32), rng.normal(size=3).astype(np.float32)
+x = rng.uniform(1e-3, 50.0, 4096)
+probe = [a32 @ v32, a32.astype(float) @ v32.astype(float), np.log2(x.astype(np.float32)), np.log2(x),
+         np.arctan2(x - 25.0, x[::-1] - 25.0), (x.astype(np.float32) / 50.0) ** 3]
+# (the sizes where numpy's SIMD levels changed pixels before: a few frames in 61 of each)
+generate_sequence(out / "rocking", SynthSpec(path=PathKind.FIGURE_EIGHT, duration_s=3.0, seed=33, vibration_deg=1.0))
+generate_sequence(out / "warehouse", SynthSpec.for_scene(SceneKind.WAREHOUSE, path=PathKind.LOOP, duration_s=3.0,
+                                                         seed=7, n_moving=1))
 generate_sequence(out / "street", SynthSpec.for_scene(SceneKind.STREET, path=PathKind.STRAIGHT, duration_s=0.5,
                                                       seed=9, width=306, height=92, fx=180.0))
 files = {str(p.relative_to(out)): hashlib.sha1(p.read_bytes()).hexdigest() for p in sorted(out.rglob("*"))
          if p.is_file()}
-print(json.dumps({"probe": hashlib.sha1(probe.tobytes()).hexdigest(), "files": files}))
+print(json.dumps({"probe": hashlib.sha1(b"".join(np.ascontiguousarray(p).tobytes() for p in probe)).hexdigest(),
+                  "files": files}))
 """
+# numpy's SIMD dispatch above the x86-64 baseline, switched off (numpy >= 2.0 names; an unknown one is ignored)
+NUMPY_BASELINE = "X86_V3 X86_V4 AVX512_ICL AVX512_SPR AVX2 FMA3 AVX512F AVX512_SKX"
 
 
 def _cpu_has_avx512() -> bool:
@@ -63,24 +71,39 @@ def test_products_match_numpys():
     T[:3, 3] = rng.normal(size=3)
     np.testing.assert_allclose(exact.inv_T(T), inv_T_blas(T), atol=1e-12)
     np.testing.assert_allclose(exact.matmul(exact.inv_T(T), T), np.eye(4), atol=1e-12)
+    x = rng.uniform(1e-6, 1e3, 10000)
+    np.testing.assert_allclose(exact.log2(x), np.log2(x), rtol=0, atol=1e-9)
+    y, z = rng.normal(size=(2, 500))
+    np.testing.assert_allclose(exact.arctan2(y, z), np.arctan2(y, z), rtol=0, atol=1e-15)
+    for bad in ((np.ones((2, 3)), np.ones((4, 2))), (np.ones((2, 3)), np.ones((3, 3, 3)))):
+        with pytest.raises(ValueError):
+            exact.matmul(*bad)
     with pytest.raises(ValueError):
-        exact.matmul(np.ones((2, 3)), np.ones((4, 2)))
+        exact.rowwise_dot(np.ones((2, 3)), np.ones((2, 4)))
 
 
-def test_two_blas_kernels_render_the_same_files(tmp_path):
-    """OpenBLAS picks its kernels by the CPU; AVX-512's sum floats in another order than AVX2's. A renderer whose
-    products go through BLAS moves pixels by a grey level between the two (and a run on them by 10-30%)."""
-    if not _cpu_has_avx512():
-        pytest.skip("this CPU has no AVX-512: OpenBLAS's SkylakeX kernel, the one that differs, cannot run here")
+@pytest.mark.slow
+def test_other_kernels_and_simd_levels_render_the_same_files(tmp_path):
+    """OpenBLAS picks its kernels by the CPU (AVX-512's sum floats in another order than AVX2's), and numpy's log2,
+    power and arctan2 have SIMD code per CPU: a renderer that calls them moves pixels by a grey level between two
+    machines (and a run on them by 10-30%). Rendered here as this CPU would (its own kernels), with numpy at the
+    x86-64 baseline and OpenBLAS's Prescott (SSE3) kernels, and, on a CPU with AVX-512, OpenBLAS's SkylakeX kernels."""
+    variants = {"this CPU": {}, "numpy baseline, Prescott": {"NPY_DISABLE_CPU_FEATURES": NUMPY_BASELINE,
+                                                              "OPENBLAS_CORETYPE": "Prescott"}}
+    if _cpu_has_avx512():
+        variants["SkylakeX"] = {"OPENBLAS_CORETYPE": "SkylakeX"}
     runs = {}
-    for kernel in ("Haswell", "SkylakeX"):
-        env = {**os.environ, "OPENBLAS_CORETYPE": kernel}
-        proc = subprocess.run([sys.executable, "-c", RENDER, str(tmp_path / kernel)], env=env, capture_output=True,
-                              text=True, timeout=300, check=True)
-        runs[kernel] = json.loads(proc.stdout.strip().splitlines()[-1])
-    if runs["Haswell"]["probe"] == runs["SkylakeX"]["probe"]:
-        pytest.skip("numpy's BLAS gives the same bits under both kernels here (not OpenBLAS?): nothing to compare")
-    a, b = runs["Haswell"]["files"], runs["SkylakeX"]["files"]
-    assert len(a) > 20 and a.keys() == b.keys()
-    differ = sorted(k for k in a if a[k] != b[k])
-    assert not differ, differ
+    for name, extra in variants.items():
+        env = {**os.environ, **extra}
+        proc = subprocess.run([sys.executable, "-c", RENDER, str(tmp_path / name.replace(" ", "_").replace(",", ""))],
+                              env=env, capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, (name, proc.stderr[-2000:])
+        runs[name] = json.loads(proc.stdout.strip().splitlines()[-1])
+    if len({r["probe"] for r in runs.values()}) == 1:
+        pytest.skip("numpy and its BLAS give the same bits under every variant here: nothing to compare")
+    first = runs["this CPU"]["files"]
+    assert len(first) > 40
+    for name, run in runs.items():
+        assert run["files"].keys() == first.keys(), name
+        differ = sorted(k for k in first if first[k] != run["files"][k])
+        assert not differ, (name, differ)

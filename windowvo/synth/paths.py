@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import exact
+
 DENSE_HZ = 200.0
 
 
@@ -53,7 +55,7 @@ def _follow_curve(curve_xy: np.ndarray, speed_profile: np.ndarray, dt: float) ->
     y = np.interp(s, s_curve, curve_xy[:, 1])
     # Heading is the curve tangent at the arclength s (defined also while stopped).
     tang = np.gradient(curve_xy, s_curve, axis=0)
-    yaw_curve = np.unwrap(np.arctan2(tang[:, 1], tang[:, 0]))
+    yaw_curve = np.unwrap(exact.arctan2(tang[:, 1], tang[:, 0]))
     yaw = np.interp(s, s_curve, yaw_curve)
     t = np.arange(len(s)) * dt
     return PlanarPath(t, x, y, yaw)

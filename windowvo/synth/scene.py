@@ -539,12 +539,13 @@ class Renderer:
         hit = np.isfinite(buf.tbuf)
         range_m = buf.tbuf * self.ray_len  # ray parameter -> metres along the ray
         footprint = np.where(hit, range_m, 1.0) * self.base_footprint / np.sqrt(np.maximum(buf.cosb, 0.05))
-        level = np.clip(np.log2(np.maximum(footprint / TEXEL_M, 1e-6)), 0.0, MIP_LEVELS - 1.001).astype(np.float32)
+        level = np.clip(exact.log2(np.maximum(footprint / TEXEL_M, 1e-6)), 0.0, MIP_LEVELS - 1.001).astype(np.float32)
         img = self.atlas.sample(buf.s_tex.ravel(), buf.t_tex.ravel(), level.ravel(), self.shape)
         img = 0.5 + (img - 0.5) * buf.contrast
         img *= buf.bright
         if buf.gloss is not None:  # sheen towards grazing angles: view-dependent, like a polished floor
-            img += buf.gloss * (1.0 - buf.cosb) ** 3
+            grazing = 1.0 - buf.cosb
+            img += buf.gloss * (grazing * grazing * grazing)
         img[~hit] = 0.05
         img *= gain
         return img, range_m

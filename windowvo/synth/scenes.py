@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import enum
 import itertools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -88,7 +89,7 @@ class Centreline:
 
     def pieces(self, max_len: float = 50.0, sag_m: float = 0.08) -> list[tuple[float, float]]:
         """Arclength intervals short enough that a chord stays within ``sag_m`` of the curve."""
-        heading = np.unwrap(np.arctan2(*np.diff(self.xy, axis=0).T[::-1]))
+        heading = np.unwrap(exact.arctan2(*np.diff(self.xy, axis=0).T[::-1]))
         curv = np.abs(np.gradient(heading, self.s[1:]))
         radius = 1.0 / max(float(curv.max()), 1e-6)
         step = float(np.clip(np.sqrt(8.0 * radius * sag_m), 4.0, max_len))
@@ -175,7 +176,7 @@ def _parked_cars(line: Centreline, n: int, s_range: tuple[float, float], rng: np
         placed[side].append(s)
         c = line.at(s, side * d)
         nrm = line.normal(s)
-        yaw = float(np.arctan2(-nrm[0], nrm[1]))
+        yaw = math.atan2(-nrm[0], nrm[1])
         out.extend(oriented_box_planes(c, yaw, CAR_SIZE, rng, brightness=float(rng.uniform(0.4, 1.1))))
     return out
 
