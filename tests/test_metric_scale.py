@@ -89,9 +89,11 @@ def test_figure_eight_with_vibration_scale_error_shrinks(seq_factory, tmp_path):
           f"wheel scale {est_scale:.4f} (true 1.020)")
     # The run's metric scale (its Sim(3) alignment's) within 0.5% of the truth: the wheels' 2% is gone. (SE(3) <= 1.3x
     # Sim(3) was asserted here until the renders became the same on every CPU: on this render the ratio is 1.41 with
-    # the scale 0.40% off; six renders of this figure eight (seeds 33-38) give 1.02-1.87 (median 1.05) with the
-    # scale 0.06-0.45% off. One sequence's ratio says as much about how small its shape error is as about its scale.)
+    # the scale 0.40% off (1.08x on the renders of OpenBLAS's AVX-512 kernels); six renders of this figure eight
+    # (seeds 33-38) give 1.02-1.87 (median 1.05) with the scale 0.06-0.45% off. One sequence's ratio says as much
+    # about how small its shape error is as about its scale; it is still held to 2.0, against a gross scale error.)
     assert abs(on.sim3_scale - 1.0) <= 0.005, on
+    assert on.ate_se3_rmse_m <= 2.0 * on.ate_sim3_rmse_m, on
     assert on.ate_se3_rmse_m <= 0.75 * off.ate_se3_rmse_m, (on, off)
     # Issue 11 asks for the scale within 0.3 %; on the vibrating figure eight it was measured at 0.35 %
     # (see the closing note), so this bound is 0.5 %. With the level frame: 0.36 % (here; 0.02-0.59 %, mean

@@ -176,7 +176,8 @@ def test_the_time_offset_keys_are_checked():
 # The scale suite's warehouse figure eight; its wheel clock is put 15 ms late (the stamps of odometry.csv alone).
 CASE = "warehouse_fig8_yaw10mrad_+1pct"
 # Where a late clock costs the run more than its noise (region off): the room's figure eight (0.0047-0.0051 m late
-# against 0.0041 m plain over floor seeds 0-4; the warehouse's figure eight 0.018-0.025 m late against 0.020-0.025 m)
+# against 0.0041-0.0042 m plain over floor seeds 0-4; the warehouse's figure eight: 0.018-0.025 m late against
+# 0.020-0.025 m plain)
 COST_CASE = "room_fig8_+2pct_track3pct"
 LATE_S = 0.015
 
@@ -215,11 +216,12 @@ def test_a_late_wheel_clock_is_estimated_and_applied(late_wheels, tmp_path_facto
     defaults (the warehouse's figure eight: 15.1 ms); and where the wheels carry the scale between the floor's points
     (the floor's region off) and the late clock costs the run more than its noise (COST_CASE), the run with it
     applied is better than the same late sequence read at the camera's times (time_offset off): 0.0041 m applied,
-    0.0047 m off, 0.0042 m plain. This comparison was first made on the warehouse's figure eight (0.0137 m applied,
-    0.0198 m off on an AVX-512 machine's render); on the render every CPU makes now the late clock does not cost that
-    run more than its floor seed does (0.018-0.025 m off against 0.020-0.025 m plain, seeds 0-4), and applying it
-    came out 0.98-1.33x of off: a comparison of noise. The issue's bar (within 1.05x of the plain run) is measured over
-    a sweep (scripts/wheel_clock_sweep.py, docs/scale_suite.md), not by one case."""
+    0.0047 m off, 0.0042 m plain (floor seeds 0-4: applied over off 0.81-0.88x). This comparison was first made on
+    the warehouse's figure eight (0.0137 m applied, 0.0198 m off on the renders of OpenBLAS's AVX-512 kernels); on
+    today's renders the late clock does not cost that run more than its floor seed does (0.018-0.025 m off against
+    0.020-0.025 m plain, seeds 0-4) and applying it came out 0.98-1.33x of off: a comparison of noise. The issue's
+    bar (within 1.05x of the plain run) is measured over a sweep (scripts/wheel_clock_sweep.py, docs/scale_suite.md),
+    not by one case."""
     _, late = late_wheels
     clock, _ = _run(late, tmp_path / "late", "estimate")
     assert clock["observable"] and abs(clock["offset_ms"] - 1000.0 * LATE_S) < 3.0, clock
