@@ -12,9 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import inv_T
 from ..io.odometry import WheelOdometry
 from ..types import FrontendOutput, GateOutcome, KeyframeReason, OdometryStep
+from . import exact
+from .exact import inv_T
 from .generate import SyntheticWorld, SynthSpec, build_world, simulate_wheel_odometry
 
 
@@ -74,8 +75,8 @@ def _observe(world: SyntheticWorld, P: np.ndarray, T_wb: np.ndarray, tracks: _Tr
     cam = world.camera
     n_landmarks = len(P)
     track_of = tracks.track_of
-    T_cw = inv_T(T_wb @ cam.T_base_cam)
-    pc = P @ T_cw[:3, :3].T + T_cw[:3, 3]
+    T_cw = inv_T(exact.matmul(T_wb, cam.T_base_cam))
+    pc = exact.matmul(P, T_cw[:3, :3].T) + T_cw[:3, 3]
     vis = (pc[:, 2] > 0.3) & (np.linalg.norm(pc, axis=1) < max_range_m)
     uv = np.zeros((n_landmarks, 2))
     uv[vis] = cam.project(pc[vis])
